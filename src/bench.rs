@@ -1,0 +1,200 @@
+//! `biscale bench`: speed and accuracy tables of the forward model, printed as Markdown so that
+//! `docs/` can quote them beside the command that made them.
+
+use crate::bvndf::{BvndfConfig, CompactBvndf};
+use crate::error::Result;
+use crate::exact::ExactEvaluator;
+use crate::frame::DirPair;
+use crate::generators::parse_generator;
+use crate::heightfield::Heightfield;
+use crate::material::parse_material;
+use crate::pairs::default_pairs;
+use crate::prefilter::{PrefilterConfig, Prefiltered};
+use crate::rng::Rng;
+use std::time::Instant;
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn time<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, T) {
+    let mut times = Vec::with_capacity(reps);
+    let mut last = None;
+    for _ in 0..reps {
+        let t = Instant::now();
+        last = Some(f());
+        times.push(t.elapsed().as_secs_f64());
+    }
+    (median(times), last.expect("reps >= 1"))
+}
+
+fn geometry(spec: &str) -> Result<Heightfield> {
+    parse_generator(spec)?.build()
+}
+
+fn default_dirs() -> Vec<DirPair> {
+    default_pairs(70).iter().map(|p| p.dirs()).collect()
+}
+
+/// Relative RMS error of `got` against `want`: `sqrt(Σ (g - w)² / Σ w²)`.
+pub fn relative_rms(got: &[f64], want: &[f64]) -> f64 {
+    let num: f64 = got.iter().zip(want).map(|(g, w)| (g - w) * (g - w)).sum();
+    let den: f64 = want.iter().map(|w| w * w).sum();
+    if den > 0.0 {
+        (num / den).sqrt()
+    } else {
+        num.sqrt()
+    }
+}
+
+/// Speed table: compact BVNDF build of 128² geometries, prefiltered material build, and one
+/// evaluation of the 490 default pairs by each method.
+pub fn speed(reps: usize) -> Result<String> {
+    let threads = rayon::current_num_threads();
+    let dirs = default_dirs();
+    let mut out = format!(
+        "Forward model speed ({threads} threads; median of {reps}; 490 pairs = 7 lights × 70 views)\n\n\
+         | geometry (128²) | BVNDF build | BVNDF size | fast 490 pairs | exact 490 pairs (s=2) |\n|---|---|---|---|---|\n"
+    );
+    let mat = parse_material("ggx:alpha=0.2+lambert:albedo=0.3")?;
+    let pre = Prefiltered::build(&mat, &PrefilterConfig::default());
+    for spec in ["bumps", "vgroove", "fbm", "bricks", "weave"] {
+        let hf = geometry(spec)?;
+        let cfg = BvndfConfig::default();
+        let (tb, geo) = time(reps, || CompactBvndf::build(&hf, &cfg));
+        let (tf, _) = time(reps.max(20), || crate::fast::fbar(&geo, &pre, &dirs));
+        let ev = ExactEvaluator::new(&hf, 2);
+        let (te, _) = time(1, || ev.fbar(&mat, &dirs));
+        out.push_str(&format!(
+            "| {spec} | {:.1} ms | {:.2} MB | {:.3} ms | {:.2} s |\n",
+            tb * 1e3,
+            geo.bytes() as f64 / 1e6,
+            tf * 1e3,
+            te
+        ));
+    }
+    out.push_str("\n| material | prefiltered F build | F size |\n|---|---|---|\n");
+    for spec in [
+        "lambert:albedo=0.5",
+        "ggx:alpha=0.2+lambert:albedo=0.3",
+        "blinn:n=60+lambert:albedo=0.2",
+        "ct:m=0.19,f0=0.23",
+    ] {
+        let m = parse_material(spec)?;
+        let (tp, p) = time(reps.min(3), || {
+            Prefiltered::build(&m, &PrefilterConfig::default())
+        });
+        out.push_str(&format!(
+            "| {spec} | {:.1} ms | {:.2} MB |\n",
+            tp * 1e3,
+            p.bytes() as f64 / 1e6
+        ));
+    }
+    Ok(out)
+}
+
+/// A random geometry spec for the accuracy table.
+fn random_geometry(r: &mut Rng) -> String {
+    let seed = r.below(1_000_000);
+    match r.below(8) {
+        0 => format!(
+            "bumps:count={},radius={:.1},height={:.1},seed={seed}",
+            4 + r.below(20),
+            r.range(5.0, 20.0),
+            r.range(1.0, 8.0)
+        ),
+        1 => format!(
+            "vgroove:period={},depth={:.1}",
+            [8, 16, 32][r.below(3) as usize],
+            r.range(1.0, 10.0)
+        ),
+        2 => format!(
+            "sine:period={},amplitude={:.1}",
+            [16, 32, 64][r.below(3) as usize],
+            r.range(0.5, 8.0)
+        ),
+        3 => format!(
+            "fbm:octaves={},amplitude={:.1},seed={seed}",
+            2 + r.below(5),
+            r.range(1.0, 12.0)
+        ),
+        4 => format!("bricks:depth={:.1}", r.range(1.0, 8.0)),
+        5 => format!(
+            "dimples:count={},radius={:.1},height={:.1},seed={seed}",
+            4 + r.below(20),
+            r.range(5.0, 20.0),
+            r.range(1.0, 8.0)
+        ),
+        6 => format!(
+            "pyramids:period={},height={:.1}",
+            [16, 32][r.below(2) as usize],
+            r.range(2.0, 12.0)
+        ),
+        _ => format!(
+            "weave:period={},height={:.1}",
+            [16, 32][r.below(2) as usize],
+            r.range(1.0, 6.0)
+        ),
+    }
+}
+
+/// A random material spec for the accuracy table.
+fn random_material(r: &mut Rng) -> String {
+    let kd = r.range(0.05, 0.6);
+    match r.below(7) {
+        0 => format!("lambert:albedo={kd:.2}"),
+        1 => format!("ggx:alpha={:.3}", r.range(0.08, 0.6)),
+        2 => format!(
+            "beckmann:alpha={:.3},f0={:.2}",
+            r.range(0.08, 0.6),
+            r.range(0.04, 1.0)
+        ),
+        3 => format!("ggx:alpha={:.3}+lambert:albedo={kd:.2}", r.range(0.08, 0.6)),
+        4 => format!(
+            "ward:alpha={:.3}+lambert:albedo={kd:.2}",
+            r.range(0.08, 0.5)
+        ),
+        5 => format!("blinn:n={:.0}+lambert:albedo={kd:.2}", r.range(10.0, 300.0)),
+        _ => format!(
+            "ct:m={:.3},f0={:.2}+lambert:albedo={kd:.2}",
+            r.range(0.1, 0.5),
+            r.range(0.04, 0.9)
+        ),
+    }
+}
+
+/// Accuracy table: relative RMS error of the fast evaluator against the exact one (s = 2) at the
+/// 490 default pairs, for `cases` random (geometry, material) pairs drawn with `seed`.
+pub fn accuracy(cases: usize, seed: u64) -> Result<String> {
+    let dirs = default_dirs();
+    let mut r = Rng::new(seed);
+    let mut rows = String::new();
+    let mut errs = Vec::new();
+    for c in 0..cases {
+        let gs = random_geometry(&mut r);
+        let ms = random_material(&mut r);
+        let hf = geometry(&gs)?;
+        let mat = parse_material(&ms)?;
+        let exact = ExactEvaluator::new(&hf, 2).fbar(&mat, &dirs);
+        let geo = CompactBvndf::build(&hf, &BvndfConfig::default());
+        let pre = Prefiltered::build(&mat, &PrefilterConfig::default());
+        let fast = crate::fast::fbar(&geo, &pre, &dirs);
+        let e = relative_rms(&fast, &exact);
+        errs.push(e);
+        rows.push_str(&format!("| {c} | `{gs}` | `{ms}` | {:.2} % |\n", 100.0 * e));
+    }
+    let mut sorted = errs.clone();
+    sorted.sort_by(f64::total_cmp);
+    let q = |f: f64| sorted[((sorted.len() - 1) as f64 * f).round() as usize];
+    Ok(format!(
+        "Fast vs exact evaluator: relative RMS error over the 490 default pairs (seed {seed})\n\n\
+         | summary | median | 90th percentile | max | share ≤ 3 % |\n|---|---|---|---|---|\n\
+         | {cases} cases | {:.2} % | {:.2} % | {:.2} % | {:.0} % |\n\n\
+         | case | geometry | material | error |\n|---|---|---|---|\n{rows}",
+        100.0 * q(0.5),
+        100.0 * q(0.9),
+        100.0 * q(1.0),
+        100.0 * errs.iter().filter(|e| **e <= 0.03).count() as f64 / cases as f64
+    ))
+}

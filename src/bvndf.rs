@@ -1,0 +1,357 @@
+//! The compact BVNDF of a heightfield: what the fast evaluator and the libraries store per geometry.
+//!
+//! The BVNDF `gamma(n; wi, wo)` of a faceted surface is a weighted set of facet normals (Eq. 3).
+//! We split the facets into `K` normal clusters (area-weighted k-means on the sphere) and, for
+//! every pair of nodes `(a, b)` of a hemisphere [`DirGrid`], store per cluster the first and second
+//! normal moments of the jointly visible area, `G1 = Σ A n V_a V_b` and `G2 = Σ A n nᵀ V_a V_b`
+//! (3 + 6 numbers). For any `(wi, wo)` the moments are interpolated bilinearly over the nodes
+//! around `wi` and `wo`, then, with the exact `wo` applied afterwards:
+//!
+//! * the cluster's share of `gamma` is `wo·G1 / a_v(wo)` — exact for the tabulated visibility,
+//!   because a facet seen from `wo` faces it, so `(n·wo)+ V = (n·wo) V`;
+//! * its shape is the vMF whose mean and mean resultant length match the `(n·wo)`-weighted mean
+//!   normal `G2 wo / (wo·G1)` (moment matching: visibility that selects part of a cluster, and the
+//!   foreshortening that favours normals facing `wo` at grazing angles, both move the lobe);
+//! * `a_v(wo)` comes from the same table on the diagonal `a = b`, so a flat patch is exact.
+//!
+//! Visibility at the nodes is exact: for each of the `n_phi` azimuths the horizon slope of every
+//! facet centroid is marched once ([`crate::visibility`]), which answers every polar node of that
+//! azimuth at once. The `G` table is symmetric in `(a, b)` and only `a <= b` is stored. The sums
+//! over node pairs use a staircase trick: a point visible up to polar node `t_a` at azimuth `j_a`
+//! and `t_b` at `j_b` contributes to every `(i_a < t_a, i_b < t_b)`, so each azimuth pair is one
+//! 2-D histogram plus a suffix sum, not a loop over node pairs.
+
+use crate::dirgrid::DirGrid;
+use crate::frame::Vec3;
+use crate::heightfield::Heightfield;
+use crate::visibility::Visibility;
+use crate::vmf::{kappa_from_resultant, Vmf};
+use rayon::prelude::*;
+
+/// Build settings of the compact BVNDF.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BvndfConfig {
+    pub n_theta: usize,
+    pub n_phi: usize,
+    /// Number of normal clusters (lobes per direction pair).
+    pub clusters: usize,
+}
+
+impl Default for BvndfConfig {
+    fn default() -> Self {
+        BvndfConfig {
+            n_theta: 10,
+            n_phi: 16,
+            clusters: 16,
+        }
+    }
+}
+
+/// Floats stored per (node pair, cluster).
+const STRIDE: usize = 9;
+
+/// The compact BVNDF of one geometry.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CompactBvndf {
+    pub grid: DirGrid,
+    pub clusters: usize,
+    /// `[pair(a <= b)][cluster][G1 (x, y, z), G2 (xx, yy, zz, xy, xz, yz)]`, areas in units of `A_base`.
+    pub table: Vec<f32>,
+    /// The cluster centres (unit mean normals of each whole cluster).
+    pub centres: Vec<Vec3>,
+}
+
+#[inline]
+fn pair_index(a: usize, b: usize) -> usize {
+    let (lo, hi) = if a <= b { (a, b) } else { (b, a) };
+    hi * (hi + 1) / 2 + lo
+}
+
+/// Area-weighted spherical k-means of unit normals; deterministic (farthest-point start).
+/// Returns the cluster of every normal and the centres.
+pub fn cluster_normals(normals: &[Vec3], weights: &[f64], k: usize) -> (Vec<u16>, Vec<Vec3>) {
+    let k = k.max(1).min(normals.len().max(1));
+    let mean = normals
+        .iter()
+        .zip(weights)
+        .fold(Vec3::default(), |a, (n, w)| a + *n * *w)
+        .normalized();
+    let mut centres: Vec<Vec3> = Vec::with_capacity(k);
+    // Farthest-point initialisation from the mean normal.
+    let first = normals
+        .iter()
+        .enumerate()
+        .min_by(|a, b| b.1.dot(mean).total_cmp(&a.1.dot(mean)))
+        .map(|(i, _)| i)
+        .unwrap_or(0);
+    centres.push(normals.get(first).copied().unwrap_or(Vec3::Z));
+    while centres.len() < k {
+        let mut far = (0usize, f64::INFINITY);
+        for (i, n) in normals.iter().enumerate() {
+            let best = centres
+                .iter()
+                .map(|c| c.dot(*n))
+                .fold(f64::NEG_INFINITY, f64::max);
+            if best < far.1 {
+                far = (i, best);
+            }
+        }
+        if far.1 > 1.0 - 1e-12 {
+            break; // fewer distinct normals than clusters
+        }
+        centres.push(normals[far.0]);
+    }
+    let mut assign = vec![0u16; normals.len()];
+    for _ in 0..12 {
+        assign
+            .par_iter_mut()
+            .zip(normals.par_iter())
+            .for_each(|(a, n)| {
+                let mut best = (0usize, f64::NEG_INFINITY);
+                for (ci, c) in centres.iter().enumerate() {
+                    let d = c.dot(*n);
+                    if d > best.1 {
+                        best = (ci, d);
+                    }
+                }
+                *a = best.0 as u16;
+            });
+        let mut sums = vec![Vec3::default(); centres.len()];
+        for ((n, w), a) in normals.iter().zip(weights).zip(&assign) {
+            sums[*a as usize] = sums[*a as usize] + *n * *w;
+        }
+        let mut moved = 0.0f64;
+        for (c, s) in centres.iter_mut().zip(sums) {
+            if s.norm() > 0.0 {
+                let nc = s.normalized();
+                moved = moved.max(1.0 - nc.dot(*c));
+                *c = nc;
+            }
+        }
+        if moved < 1e-12 {
+            break;
+        }
+    }
+    (assign, centres)
+}
+
+impl CompactBvndf {
+    /// Build the compact BVNDF of `hf`.
+    pub fn build(hf: &Heightfield, cfg: &BvndfConfig) -> Self {
+        let grid = DirGrid::new(cfg.n_theta, cfg.n_phi);
+        let facets = hf.facets();
+        let abase = hf.base_area();
+        let normals: Vec<Vec3> = facets.iter().map(|f| f.n).collect();
+        let areas: Vec<f64> = facets.iter().map(|f| f.area / abase).collect();
+        let (assign, centres) = cluster_normals(&normals, &areas, cfg.clusters);
+        let kc = centres.len();
+        let nt = grid.thetas.len();
+        let np = grid.n_phi;
+
+        // Polar thresholds: visible at node i of azimuth j iff cot(theta_i) > H_j.
+        let cots: Vec<f64> = grid
+            .thetas
+            .iter()
+            .map(|t| {
+                if *t == 0.0 {
+                    f64::INFINITY
+                } else {
+                    1.0 / t.tan()
+                }
+            })
+            .collect();
+        let floor = cots[nt - 1];
+        let stop = if nt > 1 { cots[1] } else { f64::INFINITY };
+        let vis = Visibility::new(hf);
+        let azimuths: Vec<(f64, f64)> = (0..np)
+            .map(|j| (grid.phi(j).cos(), grid.phi(j).sin()))
+            .collect();
+        // t[p * np + j] = number of polar nodes from which point p is visible at azimuth j.
+        let t: Vec<u8> = facets
+            .par_iter()
+            .flat_map_iter(|f| {
+                let c = (f.v[0] + f.v[1] + f.v[2]) * (1.0 / 3.0);
+                let vis = &vis;
+                let cots = &cots;
+                azimuths.iter().map(move |&(dx, dy)| {
+                    let hzn = vis.horizon(c.x, c.y, c.z, dx, dy, floor, stop);
+                    cots.iter().take_while(|&&ct| ct >= hzn).count() as u8
+                })
+            })
+            .collect();
+
+        // Per azimuth pair: 2-D histogram over (t_a, t_b) per cluster, then suffix sums.
+        let jpairs: Vec<(usize, usize)> = (0..np)
+            .flat_map(|ja| (ja..np).map(move |jb| (ja, jb)))
+            .collect();
+        let side = nt + 1;
+        let blocks: Vec<((usize, usize), Vec<[f64; STRIDE]>)> = jpairs
+            .par_iter()
+            .map(|&(ja, jb)| {
+                let mut hist = vec![[0.0f64; STRIDE]; kc * side * side];
+                for (p, f) in facets.iter().enumerate() {
+                    let ta = t[p * np + ja] as usize;
+                    let tb = t[p * np + jb] as usize;
+                    if ta == 0 || tb == 0 {
+                        continue;
+                    }
+                    let a = areas[p];
+                    let n = f.n;
+                    let h = &mut hist[(assign[p] as usize * side + ta) * side + tb];
+                    let m = [
+                        n.x,
+                        n.y,
+                        n.z,
+                        n.x * n.x,
+                        n.y * n.y,
+                        n.z * n.z,
+                        n.x * n.y,
+                        n.x * n.z,
+                        n.y * n.z,
+                    ];
+                    for q in 0..STRIDE {
+                        h[q] += a * m[q];
+                    }
+                }
+                // suffix sums: S[ia][ib] = Σ_{ta >= ia, tb >= ib} hist  (then node i uses S[i+1])
+                for c in 0..kc {
+                    let base = c * side * side;
+                    for ia in (0..side).rev() {
+                        for ib in (0..side).rev() {
+                            let mut v = hist[base + ia * side + ib];
+                            if ia + 1 < side {
+                                let o = hist[base + (ia + 1) * side + ib];
+                                for q in 0..STRIDE {
+                                    v[q] += o[q];
+                                }
+                            }
+                            if ib + 1 < side {
+                                let o = hist[base + ia * side + ib + 1];
+                                for q in 0..STRIDE {
+                                    v[q] += o[q];
+                                }
+                            }
+                            if ia + 1 < side && ib + 1 < side {
+                                let o = hist[base + (ia + 1) * side + ib + 1];
+                                for q in 0..STRIDE {
+                                    v[q] -= o[q];
+                                }
+                            }
+                            hist[base + ia * side + ib] = v;
+                        }
+                    }
+                }
+                ((ja, jb), hist)
+            })
+            .collect();
+
+        let n_nodes = grid.len();
+        let n_pairs = n_nodes * (n_nodes + 1) / 2;
+        let mut table = vec![0f32; n_pairs * kc * STRIDE];
+        for ((ja, jb), hist) in blocks {
+            for ia in 0..nt {
+                for ib in 0..nt {
+                    let a = grid.node(ia, ja);
+                    let b = grid.node(ib, jb);
+                    let pi = pair_index(a, b);
+                    for c in 0..kc {
+                        let v = hist[(c * side + ia + 1) * side + ib + 1];
+                        let dst = &mut table[(pi * kc + c) * STRIDE..(pi * kc + c + 1) * STRIDE];
+                        for q in 0..STRIDE {
+                            dst[q] = v[q] as f32;
+                        }
+                    }
+                }
+            }
+        }
+        CompactBvndf {
+            grid,
+            clusters: kc,
+            table,
+            centres,
+        }
+    }
+
+    /// Bytes of the stored representation (the table and the centres).
+    pub fn bytes(&self) -> usize {
+        self.table.len() * 4 + self.centres.len() * 24
+    }
+
+    /// The lobes of `gamma(·; wi, wo)`: `(weight, vMF)` per cluster, weights summing to at most 1.
+    /// Empty when `wo` is at or below the horizon.
+    pub fn lobes(&self, wi: Vec3, wo: Vec3, out: &mut Vec<(f64, Vmf)>) {
+        out.clear();
+        if wi.z <= 0.0 || wo.z <= 0.0 {
+            return;
+        }
+        let kc = self.clusters;
+        let wa = self.grid.weights(wi);
+        let wb = self.grid.weights(wo);
+        let mut acc = [[0.0f64; STRIDE]; 64];
+        let mut diag = 0.0;
+        for &(b, vb) in &wb {
+            if vb == 0.0 {
+                continue;
+            }
+            let pd = pair_index(b, b);
+            for c in 0..kc {
+                let e = &self.table[(pd * kc + c) * STRIDE..];
+                diag += vb * (wo.x * e[0] as f64 + wo.y * e[1] as f64 + wo.z * e[2] as f64);
+            }
+            for &(a, ua) in &wa {
+                let w = ua * vb;
+                if w == 0.0 {
+                    continue;
+                }
+                let pi = pair_index(a, b);
+                for c in 0..kc.min(64) {
+                    let e = &self.table[(pi * kc + c) * STRIDE..];
+                    for q in 0..STRIDE {
+                        acc[c][q] += w * e[q] as f64;
+                    }
+                }
+            }
+        }
+        if !(diag > 0.0) {
+            return;
+        }
+        for a in acc.iter().take(kc.min(64)) {
+            let mass = wo.x * a[0] + wo.y * a[1] + wo.z * a[2];
+            if !(mass > 0.0) {
+                continue;
+            }
+            // (n·wo)-weighted normal moment G2 wo.
+            let m = Vec3::new(
+                a[3] * wo.x + a[6] * wo.y + a[7] * wo.z,
+                a[6] * wo.x + a[4] * wo.y + a[8] * wo.z,
+                a[7] * wo.x + a[8] * wo.y + a[5] * wo.z,
+            );
+            let len = m.norm();
+            if !(len > 0.0) {
+                continue;
+            }
+            let r = (len / mass).min(1.0);
+            out.push((
+                mass / diag,
+                Vmf::new(kappa_from_resultant(r), m * (1.0 / len)),
+            ));
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::dir_from_deg;
+
+    #[test]
+    fn flat_patch_is_one_sharp_lobe() {
+        let hf = Heightfield::flat(8, 8);
+        let b = CompactBvndf::build(&hf, &BvndfConfig::default());
+        let mut l = Vec::new();
+        b.lobes(dir_from_deg(30.0, 20.0), dir_from_deg(80.0, 250.0), &mut l);
+        let total: f64 = l.iter().map(|x| x.0).sum();
+        assert!((total - 1.0).abs() < 1e-6, "{l:?}");
+        assert!(l.iter().all(|x| x.1.mu.z > 0.999999 && x.1.kappa >= 1e5));
+    }
+}

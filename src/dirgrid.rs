@@ -1,0 +1,114 @@
+//! A grid of directions over the upper hemisphere, with bilinear interpolation weights for any
+//! direction: the nodes at which the compact BVNDF is tabulated.
+//!
+//! Nodes are `(theta_i, phi_j)` with `phi_j = j · 2 pi / n_phi`; theta nodes are denser towards
+//! grazing angles, where visibility changes fastest. Directions beyond the last theta node use
+//! the last node (their cosines are applied exactly elsewhere).
+
+use crate::frame::{angles_of, dir_from_rad, Vec3};
+use std::f64::consts::TAU;
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct DirGrid {
+    /// Polar angles in radians, increasing, starting at 0.
+    pub thetas: Vec<f64>,
+    pub n_phi: usize,
+}
+
+impl DirGrid {
+    /// The default grid: 10 polar nodes from 0° to 88.5° and 16 azimuths.
+    pub fn standard() -> Self {
+        Self::new(10, 16)
+    }
+
+    /// `n_theta` polar nodes from 0 to 88.5°, spaced uniformly in `1 - cos`-like steps that
+    /// tighten towards the horizon, and `n_phi` azimuths.
+    pub fn new(n_theta: usize, n_phi: usize) -> Self {
+        let n_theta = n_theta.max(2);
+        let last = 88.5f64.to_radians();
+        // theta = last · g(u), g(u) = sin(u pi/2)^0.75 spreads nodes towards the horizon.
+        let thetas = (0..n_theta)
+            .map(|i| {
+                let u = i as f64 / (n_theta - 1) as f64;
+                last * (u * std::f64::consts::FRAC_PI_2).sin().powf(0.75)
+            })
+            .collect();
+        DirGrid {
+            thetas,
+            n_phi: n_phi.max(3),
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.thetas.len() * self.n_phi
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Node index of `(theta index, phi index)`.
+    #[inline]
+    pub fn node(&self, it: usize, jp: usize) -> usize {
+        it * self.n_phi + jp
+    }
+
+    pub fn direction(&self, node: usize) -> Vec3 {
+        let it = node / self.n_phi;
+        let jp = node % self.n_phi;
+        dir_from_rad(self.thetas[it], self.phi(jp))
+    }
+
+    pub fn phi(&self, jp: usize) -> f64 {
+        jp as f64 * TAU / self.n_phi as f64
+    }
+
+    /// Up to four `(node, weight)` pairs, weights summing to 1, bilinear in `(theta, phi)`.
+    pub fn weights(&self, w: Vec3) -> [(usize, f64); 4] {
+        let (theta, phi) = angles_of(w);
+        let nt = self.thetas.len();
+        let (it, ft) = if theta >= self.thetas[nt - 1] {
+            (nt - 2, 1.0)
+        } else {
+            let mut i = 0;
+            while i + 2 < nt && theta >= self.thetas[i + 1] {
+                i += 1;
+            }
+            let t = (theta - self.thetas[i]) / (self.thetas[i + 1] - self.thetas[i]);
+            (i, t.clamp(0.0, 1.0))
+        };
+        let x = phi / TAU * self.n_phi as f64;
+        let j0 = (x.floor() as usize) % self.n_phi;
+        let fp = x - x.floor();
+        let j1 = (j0 + 1) % self.n_phi;
+        [
+            (self.node(it, j0), (1.0 - ft) * (1.0 - fp)),
+            (self.node(it, j1), (1.0 - ft) * fp),
+            (self.node(it + 1, j0), ft * (1.0 - fp)),
+            (self.node(it + 1, j1), ft * fp),
+        ]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::dir_from_deg;
+
+    #[test]
+    fn weights_reproduce_nodes_and_sum_to_one() {
+        let g = DirGrid::standard();
+        for node in 0..g.len() {
+            let w = g.weights(g.direction(node));
+            let s: f64 = w.iter().map(|x| x.1).sum();
+            assert!((s - 1.0).abs() < 1e-12);
+            let on: f64 = w.iter().filter(|x| x.0 == node).map(|x| x.1).sum();
+            // at the zenith all azimuth nodes are the same direction
+            if node >= g.n_phi {
+                assert!((on - 1.0).abs() < 1e-9, "node {node}: {w:?}");
+            }
+        }
+        let w = g.weights(dir_from_deg(89.9, 359.9));
+        assert!(w.iter().all(|x| x.1.is_finite() && x.1 >= 0.0));
+    }
+}

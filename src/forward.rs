@@ -1,0 +1,182 @@
+//! The `forward` job: the large-scale `fbar` of one (geometry, material) pair at given direction
+//! pairs, by the exact or the fast evaluator. Validates every input before any expensive work and
+//! writes its CSV atomically.
+
+use crate::bvndf::{BvndfConfig, CompactBvndf};
+use crate::error::{Error, Result};
+use crate::exact::ExactEvaluator;
+use crate::heightfield::Heightfield;
+use crate::material::{parse_material, Material};
+use crate::pairs::{default_pairs, format_output, read_pairs, AnglePair};
+use crate::prefilter::{PrefilterConfig, Prefiltered};
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Method {
+    Exact,
+    Fast,
+}
+
+/// Everything the `forward` command takes.
+#[derive(Debug, Clone)]
+pub struct ForwardJob {
+    pub geometry: String,
+    pub patch_size_mm: f64,
+    pub height_scale: f64,
+    pub material: String,
+    /// `None`: the built-in 490-pair sample set.
+    pub pairs: Option<PathBuf>,
+    pub method: Method,
+    /// `None`: write the CSV to standard output.
+    pub out: Option<PathBuf>,
+    /// Points per facet side of the exact evaluator.
+    pub exact_samples: usize,
+    pub bvndf: BvndfConfig,
+    pub prefilter: PrefilterConfig,
+    pub quiet: bool,
+}
+
+impl Default for ForwardJob {
+    fn default() -> Self {
+        ForwardJob {
+            geometry: "bumps".into(),
+            patch_size_mm: 10.0,
+            height_scale: 1.0,
+            material: "ggx:alpha=0.2+lambert:albedo=0.3".into(),
+            pairs: None,
+            method: Method::Fast,
+            out: None,
+            exact_samples: 2,
+            bvndf: BvndfConfig::default(),
+            prefilter: PrefilterConfig::default(),
+            quiet: false,
+        }
+    }
+}
+
+/// The result of a forward job.
+pub struct ForwardResult {
+    pub pairs: Vec<AnglePair>,
+    pub fbar: Vec<f64>,
+    pub csv: String,
+}
+
+fn log(quiet: bool, msg: impl AsRef<str>) {
+    if !quiet {
+        eprintln!("biscale forward: {}", msg.as_ref());
+    }
+}
+
+/// Load inputs in the order cheapest first, so bad input fails before any expensive work.
+pub fn load_inputs(job: &ForwardJob) -> Result<(Vec<AnglePair>, Material, Heightfield)> {
+    let pairs = match &job.pairs {
+        Some(p) => read_pairs(p)?,
+        None => default_pairs(70),
+    };
+    let mat = parse_material(&job.material).map_err(|e| e.within("--material"))?;
+    if !(job.patch_size_mm.is_finite() && job.patch_size_mm > 0.0) {
+        return Err(Error::new(
+            "--patch-size",
+            format!("{} mm: expected a positive size", job.patch_size_mm),
+        ));
+    }
+    if !(job.height_scale.is_finite() && job.height_scale >= 0.0) {
+        return Err(Error::new(
+            "--height-scale",
+            format!("{}: expected a non-negative factor", job.height_scale),
+        ));
+    }
+    let hf =
+        crate::heightmap_io::resolve_geometry(&job.geometry, job.patch_size_mm, job.height_scale)
+            .map_err(|e| e.within("--geometry"))?;
+    Ok((pairs, mat, hf))
+}
+
+pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
+    if let Some(out) = &job.out {
+        if out.is_dir() {
+            return Err(Error::new(
+                out.display().to_string(),
+                "is a directory; expected a CSV file path",
+            ));
+        }
+    }
+    let t0 = Instant::now();
+    let (pairs, mat, hf) = load_inputs(job)?;
+    let (lo, hi) = hf.min_max();
+    log(
+        job.quiet,
+        format!(
+            "geometry {} ({}×{} samples, relief {:.4} grid units, {:.4} mm) loaded in {:.1} ms",
+            hf.name,
+            hf.width(),
+            hf.height(),
+            hi - lo,
+            (hi - lo) * hf.cell_mm,
+            t0.elapsed().as_secs_f64() * 1e3
+        ),
+    );
+    log(
+        job.quiet,
+        format!("material {}; {} direction pairs", mat.spec(), pairs.len()),
+    );
+    let dirs: Vec<_> = pairs.iter().map(|p| p.dirs()).collect();
+    let fbar = match job.method {
+        Method::Exact => {
+            let t = Instant::now();
+            let ev = ExactEvaluator::new(&hf, job.exact_samples);
+            let v = ev.fbar(&mat, &dirs);
+            log(
+                job.quiet,
+                format!(
+                    "exact: {} facets × {} points each, evaluated in {:.3} s",
+                    ev.facets().len(),
+                    job.exact_samples * job.exact_samples,
+                    t.elapsed().as_secs_f64()
+                ),
+            );
+            v
+        }
+        Method::Fast => {
+            let t = Instant::now();
+            let geo = CompactBvndf::build(&hf, &job.bvndf);
+            log(
+                job.quiet,
+                format!(
+                    "fast: compact BVNDF ({} lobes, {} directions, {:.2} MB) built in {:.1} ms",
+                    geo.clusters,
+                    geo.grid.len(),
+                    geo.bytes() as f64 / 1e6,
+                    t.elapsed().as_secs_f64() * 1e3
+                ),
+            );
+            let t = Instant::now();
+            let pre = Prefiltered::build(&mat, &job.prefilter);
+            log(
+                job.quiet,
+                format!(
+                    "fast: prefiltered material ({:.2} MB) built in {:.1} ms",
+                    pre.bytes() as f64 / 1e6,
+                    t.elapsed().as_secs_f64() * 1e3
+                ),
+            );
+            let t = Instant::now();
+            let v = crate::fast::fbar(&geo, &pre, &dirs);
+            log(
+                job.quiet,
+                format!(
+                    "fast: evaluated in {:.3} ms",
+                    t.elapsed().as_secs_f64() * 1e3
+                ),
+            );
+            v
+        }
+    };
+    let csv = format_output(&pairs, &fbar);
+    if let Some(out) = &job.out {
+        crate::atomic_write::write_bytes(out, csv.as_bytes())?;
+        log(job.quiet, format!("wrote {}", out.display()));
+    }
+    Ok(ForwardResult { pairs, fbar, csv })
+}

@@ -1,0 +1,36 @@
+//! biscale: inverse bi-scale material design for fabrication (Wu, Dorsey, Rushmeier).
+//!
+//! The library holds all behaviour; `src/main.rs` is a thin command line over it. See
+//! `docs/architecture.md` for the modules and how data flows between them.
+
+pub mod error;
+pub mod frame;
+pub mod rng;
+
+// Small-scale materials and large-scale targets.
+pub mod material;
+pub mod target;
+
+// Small-scale geometry.
+pub mod generators;
+pub mod heightfield;
+pub mod heightmap_io;
+pub mod npy;
+pub mod texture;
+
+// Visibility, BVNDF and the two evaluators of fbar.
+pub mod bvndf;
+pub mod dirgrid;
+pub mod exact;
+pub mod fast;
+pub mod prefilter;
+pub mod visibility;
+pub mod vmf;
+
+// Files and commands.
+pub mod atomic_write;
+pub mod bench;
+pub mod forward;
+pub mod pairs;
+
+pub use error::{Error, Result};

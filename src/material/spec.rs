@@ -1,0 +1,306 @@
+//! The material spec grammar of `--material` and of scene files.
+//!
+//! ```text
+//! material := term ('+' term)*
+//! term     := model [':' key '=' value (',' key '=' value)*]  |  path-to-MERL.binary
+//! ```
+//! See [`MATERIAL_GRAMMAR`] for the models and keys; `biscale forward --help` prints it.
+
+use super::{
+    BlinnPhong, Distribution, Lambert, Lobe, Material, MerlBrdf, Microfacet, Shadowing, Ward,
+};
+use crate::error::{Error, Result};
+use std::path::Path;
+use std::sync::Arc;
+
+/// Help text for the grammar, shared by `--help` and the user guide.
+pub const MATERIAL_GRAMMAR: &str = "\
+A material is one or more lobes joined by '+', e.g. 'ggx:alpha=0.1+lambert:albedo=0.2'.
+  lambert:albedo=A              Lambertian, f = A/pi (0 <= A <= 1)
+  ggx:alpha=a[,f0=F][,ks=K]     GGX, separable Smith G, Schlick F (f0=1: no Fresnel)
+  beckmann:alpha=a[,f0=F][,ks=K] Beckmann, separable Smith G, Schlick F
+  ct:m=m[,f0=F][,ks=K]          Cook-Torrance: Beckmann D, Schlick F, V-cavity G
+  ward:alpha=a[,ks=K]           isotropic Ward
+  blinn:n=N[,ks=K]              Blinn-Phong, f = K (N+8)/(8 pi) (n.h)^N
+  PATH.binary                   a MERL measured BRDF
+Defaults: f0=1, ks=1. Any lobe may carry rgb=R:G:B, the material's colour (scaled to mean 1).
+Roughness a, m in (0, 10]; N in [0, 1e7]; f0 in [0, 1]; ks >= 0.";
+
+/// Split at '+' signs that start a new term (not the '+' of an exponent such as `1e+5`).
+fn split_terms(spec: &str) -> Vec<&str> {
+    let b = spec.as_bytes();
+    let mut out = Vec::new();
+    let mut start = 0;
+    for i in 0..b.len() {
+        if b[i] == b'+' {
+            let prev_is_exp =
+                i >= 2 && (b[i - 1] == b'e' || b[i - 1] == b'E') && b[i - 2].is_ascii_digit();
+            if !prev_is_exp {
+                out.push(&spec[start..i]);
+                start = i + 1;
+            }
+        }
+    }
+    out.push(&spec[start..]);
+    out
+}
+
+/// Parsed `key=value` pairs of one term, consumed as they are read so leftovers are reported.
+pub(crate) struct Params<'a> {
+    pub model: &'a str,
+    pub pairs: Vec<(&'a str, &'a str)>,
+}
+
+impl<'a> Params<'a> {
+    pub fn parse(term: &'a str) -> Result<Self> {
+        let (model, rest) = match term.split_once(':') {
+            Some((m, r)) => (m.trim(), r.trim()),
+            None => (term.trim(), ""),
+        };
+        let mut pairs = Vec::new();
+        if !rest.is_empty() {
+            for kv in rest.split(',') {
+                let Some((k, v)) = kv.split_once('=') else {
+                    return Err(Error::new(
+                        format!("'{term}'"),
+                        format!("'{kv}' is not key=value (expected e.g. alpha=0.2)"),
+                    ));
+                };
+                let k = k.trim();
+                if pairs.iter().any(|(kk, _)| *kk == k) {
+                    return Err(Error::new(
+                        format!("'{term}'"),
+                        format!("key '{k}' is given twice"),
+                    ));
+                }
+                pairs.push((k, v.trim()));
+            }
+        }
+        Ok(Params { model, pairs })
+    }
+
+    fn take(&mut self, key: &str) -> Option<&'a str> {
+        let i = self.pairs.iter().position(|(k, _)| *k == key)?;
+        Some(self.pairs.remove(i).1)
+    }
+
+    /// A number for `key`, `default` if absent (`None` = required), checked against `lo..=hi`.
+    pub fn num(
+        &mut self,
+        key: &str,
+        default: Option<f64>,
+        lo: f64,
+        hi: f64,
+        lo_open: bool,
+    ) -> Result<f64> {
+        let model = self.model;
+        let v = match self.take(key) {
+            None => default.ok_or_else(|| {
+                Error::new(
+                    format!("'{model}'"),
+                    format!("missing parameter '{key}' (e.g. {model}:{key}=...)"),
+                )
+            })?,
+            Some(s) => s.parse::<f64>().map_err(|_| {
+                Error::new(format!("'{model}'"), format!("{key}='{s}' is not a number"))
+            })?,
+        };
+        let below = if lo_open { v <= lo } else { v < lo };
+        if !v.is_finite() || below || v > hi {
+            let lb = if lo_open { "(" } else { "[" };
+            return Err(Error::new(
+                format!("'{model}'"),
+                format!("{key}={v} is out of range, expected a value in {lb}{lo}, {hi}]"),
+            ));
+        }
+        Ok(v)
+    }
+
+    pub fn raw(&mut self, key: &str) -> Option<&'a str> {
+        self.take(key)
+    }
+
+    /// Error if keys are left over, listing what the model accepts.
+    pub fn finish(self, accepted: &str) -> Result<()> {
+        if let Some((k, _)) = self.pairs.first() {
+            return Err(Error::new(
+                format!("'{}'", self.model),
+                format!("unknown parameter '{k}' (accepted: {accepted})"),
+            ));
+        }
+        Ok(())
+    }
+}
+
+fn parse_rgb(s: &str) -> Result<[f64; 3]> {
+    let parts: Vec<&str> = s.split(':').collect();
+    let bad = || {
+        Error::new(
+            format!("rgb={s}"),
+            "expected three non-negative numbers R:G:B, not all zero",
+        )
+    };
+    if parts.len() != 3 {
+        return Err(bad());
+    }
+    let mut c = [0.0; 3];
+    for (i, p) in parts.iter().enumerate() {
+        c[i] = p.trim().parse::<f64>().map_err(|_| bad())?;
+        if !c[i].is_finite() || c[i] < 0.0 {
+            return Err(bad());
+        }
+    }
+    let mean = (c[0] + c[1] + c[2]) / 3.0;
+    if mean <= 0.0 {
+        return Err(bad());
+    }
+    Ok([c[0] / mean, c[1] / mean, c[2] / mean])
+}
+
+fn looks_like_path(term: &str) -> bool {
+    term.ends_with(".binary") || term.contains('/') || term.contains('\\')
+}
+
+/// Parse a material spec (see [`MATERIAL_GRAMMAR`]).
+pub fn parse_material(spec: &str) -> Result<Material> {
+    let ctx = |e: Error| e.within(format!("material '{spec}'"));
+    if spec.trim().is_empty() {
+        return Err(Error::new(
+            "material",
+            "empty spec; expected e.g. 'ggx:alpha=0.2'",
+        ));
+    }
+    let mut lobes = Vec::new();
+    let mut color: Option<[f64; 3]> = None;
+    for term in split_terms(spec) {
+        let term = term.trim();
+        if term.is_empty() {
+            return Err(ctx(Error::new("", "empty term around '+'")));
+        }
+        if looks_like_path(term) {
+            let m = MerlBrdf::load(Path::new(term)).map_err(ctx)?;
+            lobes.push(Lobe::Merl(Arc::new(m)));
+            continue;
+        }
+        let mut p = Params::parse(term).map_err(ctx)?;
+        if let Some(c) = p.raw("rgb") {
+            if color.is_some() {
+                return Err(ctx(Error::new("rgb", "the colour is given twice")));
+            }
+            color = Some(parse_rgb(c).map_err(ctx)?);
+        }
+        let lobe = match p.model {
+            "lambert" => {
+                let albedo = p.num("albedo", None, 0.0, 1.0, false).map_err(ctx)?;
+                p.finish("albedo, rgb").map_err(ctx)?;
+                Lobe::Lambert(Lambert { albedo })
+            }
+            "ggx" | "beckmann" => {
+                if p.pairs.iter().any(|(k, _)| *k == "m") {
+                    return Err(ctx(Error::new(format!("'{}'", p.model), "use alpha=..., not m (m is for ct)")));
+                }
+                let alpha = p.num("alpha", None, 0.0, 10.0, true).map_err(ctx)?;
+                let f0 = p.num("f0", Some(1.0), 0.0, 1.0, false).map_err(ctx)?;
+                let ks = p.num("ks", Some(1.0), 0.0, 1e6, false).map_err(ctx)?;
+                let dist = if p.model == "ggx" { Distribution::Ggx } else { Distribution::Beckmann };
+                p.finish("alpha, f0, ks, rgb").map_err(ctx)?;
+                Lobe::Microfacet(Microfacet { dist, shadowing: Shadowing::Smith, alpha, f0, ks })
+            }
+            "ct" | "cooktorrance" => {
+                let m = p.num("m", None, 0.0, 10.0, true).map_err(ctx)?;
+                let f0 = p.num("f0", Some(1.0), 0.0, 1.0, false).map_err(ctx)?;
+                let ks = p.num("ks", Some(1.0), 0.0, 1e6, false).map_err(ctx)?;
+                p.finish("m, f0, ks, rgb").map_err(ctx)?;
+                Lobe::Microfacet(Microfacet {
+                    dist: Distribution::Beckmann,
+                    shadowing: Shadowing::VCavity,
+                    alpha: m,
+                    f0,
+                    ks,
+                })
+            }
+            "ward" => {
+                if p.pairs.iter().any(|(k, _)| *k == "ax" || *k == "ay") {
+                    return Err(ctx(Error::new(
+                        "'ward'",
+                        "anisotropic Ward (ax, ay) is a large-scale target, not a small-scale material \
+                         (small-scale materials are isotropic): use ward:alpha=...",
+                    )));
+                }
+                let alpha = p.num("alpha", None, 0.0, 10.0, true).map_err(ctx)?;
+                let ks = p.num("ks", Some(1.0), 0.0, 1e6, false).map_err(ctx)?;
+                p.finish("alpha, ks, rgb").map_err(ctx)?;
+                Lobe::Ward(Ward { alpha, ks })
+            }
+            "blinn" | "phong" => {
+                let n = p.num("n", None, 0.0, 1e7, false).map_err(ctx)?;
+                let ks = p.num("ks", Some(1.0), 0.0, 1e6, false).map_err(ctx)?;
+                p.finish("n, ks, rgb").map_err(ctx)?;
+                Lobe::Blinn(BlinnPhong { n, ks })
+            }
+            other => {
+                return Err(ctx(Error::new(
+                    format!("'{other}'"),
+                    "unknown material model (expected lambert, ggx, beckmann, ct, ward, blinn, or a path to a MERL .binary)",
+                )))
+            }
+        };
+        lobes.push(lobe);
+    }
+    let mut m = Material::new(lobes);
+    if let Some(c) = color {
+        m.color = c;
+    }
+    Ok(m)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_the_documented_examples() {
+        for s in [
+            "lambert:albedo=0.5",
+            "ggx:alpha=0.2",
+            "ggx:alpha=0.2,f0=0.9",
+            "beckmann:alpha=0.3",
+            "ward:alpha=0.1",
+            "blinn:n=60",
+            "blinn:n=1e+5",
+            "ct:m=0.19,f0=0.23",
+            "ggx:alpha=0.1+lambert:albedo=0.2",
+            "blinn:n=60,rgb=0.9:0.6:0.3+lambert:albedo=0.3",
+        ] {
+            let m = parse_material(s).unwrap_or_else(|e| panic!("{s}: {e}"));
+            // canonical specs parse back to the same thing
+            let again = parse_material(&m.spec()).unwrap();
+            assert_eq!(again.spec(), m.spec());
+        }
+        assert_eq!(parse_material("blinn:n=1e+5").unwrap().lobes.len(), 1);
+    }
+
+    #[test]
+    fn rejects_nonsense_with_clear_messages() {
+        let cases = [
+            ("ggx:alpha=-0.1", "alpha=-0.1 is out of range"),
+            ("ggx:alpha=nan", "out of range"),
+            ("ggx", "missing parameter 'alpha'"),
+            ("velvet:x=1", "unknown material model"),
+            ("ggx:alpha=0.2,roughness=3", "unknown parameter 'roughness'"),
+            ("ggx:alpha=abc", "is not a number"),
+            ("lambert:albedo=1.5", "out of range"),
+            ("ward:ax=0.3,ay=0.08", "large-scale target"),
+            ("ggx:alpha=0.2+", "empty term"),
+            ("missing/file.binary", "missing/file.binary"),
+        ];
+        for (s, want) in cases {
+            let e = parse_material(s).unwrap_err().to_string();
+            assert!(e.contains(want), "{s}: {e}");
+            assert!(
+                e.contains(s.split('+').next().unwrap_or(s)) || e.contains("material"),
+                "{s}: {e}"
+            );
+        }
+    }
+}
