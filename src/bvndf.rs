@@ -287,7 +287,7 @@ impl CompactBvndf {
         let kc = self.clusters;
         let wa = self.grid.weights(wi);
         let wb = self.grid.weights(wo);
-        let mut acc = [[0.0f64; STRIDE]; 64];
+        let mut acc = vec![[0.0f64; STRIDE]; kc];
         let mut diag = 0.0;
         for &(b, vb) in &wb {
             if vb == 0.0 {
@@ -304,7 +304,7 @@ impl CompactBvndf {
                     continue;
                 }
                 let pi = pair_index(a, b);
-                for c in 0..kc.min(64) {
+                for c in 0..kc {
                     let e = &self.table[(pi * kc + c) * STRIDE..];
                     for q in 0..STRIDE {
                         acc[c][q] += w * e[q] as f64;
@@ -315,7 +315,7 @@ impl CompactBvndf {
         if !(diag > 0.0) {
             return;
         }
-        for a in acc.iter().take(kc.min(64)) {
+        for a in acc.iter() {
             let mass = wo.x * a[0] + wo.y * a[1] + wo.z * a[2];
             if !(mass > 0.0) {
                 continue;

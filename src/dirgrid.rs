@@ -2,8 +2,10 @@
 //! direction: the nodes at which the compact BVNDF is tabulated.
 //!
 //! Nodes are `(theta_i, phi_j)` with `phi_j = j · 2 pi / n_phi`; theta nodes are denser towards
-//! grazing angles, where visibility changes fastest. Directions beyond the last theta node use
-//! the last node (their cosines are applied exactly elsewhere).
+//! grazing angles, where visibility changes fastest. Between polar nodes the weights are linear in
+//! the ray slope `cot(theta)` (linear in `tan(theta)` next to the zenith), in azimuth linear in phi.
+//! Directions beyond the last theta node use the last node (their cosines are applied exactly
+//! elsewhere).
 
 use crate::frame::{angles_of, dir_from_rad, Vec3};
 use std::f64::consts::TAU;
@@ -74,7 +76,15 @@ impl DirGrid {
             while i + 2 < nt && theta >= self.thetas[i + 1] {
                 i += 1;
             }
-            let t = (theta - self.thetas[i]) / (self.thetas[i + 1] - self.thetas[i]);
+            // Interpolate in the ray slope m = cot(theta), the variable in which visibility is a
+            // threshold (a point is visible iff m exceeds its horizon slope), so the visible share
+            // of an area is the CDF of its horizon slopes; from the zenith use tan(theta) = 1/m.
+            let t = if i == 0 {
+                theta.tan() / self.thetas[1].tan()
+            } else {
+                let (m0, m1) = (1.0 / self.thetas[i].tan(), 1.0 / self.thetas[i + 1].tan());
+                (m0 - 1.0 / theta.tan()) / (m0 - m1)
+            };
             (i, t.clamp(0.0, 1.0))
         };
         let x = phi / TAU * self.n_phi as f64;

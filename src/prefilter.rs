@@ -31,12 +31,7 @@ pub struct PrefilterConfig {
 
 impl Default for PrefilterConfig {
     fn default() -> Self {
-        PrefilterConfig {
-            n_half: 16,
-            n_theta_mu: 32,
-            n_phi_mu: 9,
-            samples: 96,
-        }
+        PrefilterConfig { n_half: 24, n_theta_mu: 48, n_phi_mu: 13, samples: 96 }
     }
 }
 

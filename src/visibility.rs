@@ -11,8 +11,10 @@
 //! above the threshold is found (occluded), or when even the highest point of the whole surface
 //! could no longer reach the threshold (`(z_max - p_z)/s <= m`: visible). Rays therefore march at
 //! most `(z_max - p_z) · tan(theta)` grid units, which is where grazing directions cost more; no
-//! other distance limit is applied, so tall surfaces at 89.9° stay exact. Back-facing points are
-//! occluded by their own facet, which the first breakpoint finds.
+//! other distance limit is applied, so tall surfaces at 89.9° stay exact. Blocks of 8×8 cells (4×4
+//! or 2×2 when the size does not divide by 8) whose highest point cannot beat the best slope so far
+//! are skipped whole. Back-facing points are occluded by their own facet, which the first
+//! breakpoint finds.
 
 use crate::heightfield::Heightfield;
 
@@ -33,19 +35,31 @@ pub struct Visibility<'a> {
     /// Slope tolerance: a breakpoint must exceed the threshold by this much to occlude, so points
     /// on the same plane (flat patches, straight groove walls) do not shadow each other.
     tol: f64,
+    /// Side of the square blocks of cells whose maximum height lets the march skip them (1: none).
+    bsize: i64,
+    /// Blocks per row and per column.
+    bw: i64,
+    bh: i64,
+    /// Highest surface point of each block (its cells' corners), row-major.
+    bmax: Vec<f64>,
 }
 
 impl<'a> Visibility<'a> {
     pub fn new(hf: &'a Heightfield) -> Self {
         let (lo, hi) = hf.min_max();
         let tol = 1e-10 * (1.0 + (hi - lo).abs());
-        Visibility {
-            hf,
-            w: hf.width() as i64,
-            h: hf.height() as i64,
-            zmax: hi,
-            tol,
+        let (w, h) = (hf.width() as i64, hf.height() as i64);
+        let bsize = [8i64, 4, 2].into_iter().find(|b| w % b == 0 && h % b == 0).unwrap_or(1);
+        let (bw, bh) = (w / bsize, h / bsize);
+        let mut bmax = vec![f64::NEG_INFINITY; (bw * bh) as usize];
+        for y in 0..h {
+            for x in 0..w {
+                let m = hf.at(x, y).max(hf.at(x + 1, y)).max(hf.at(x, y + 1)).max(hf.at(x + 1, y + 1));
+                let b = &mut bmax[((y / bsize) * bw + x / bsize) as usize];
+                *b = b.max(m);
+            }
         }
+        Visibility { hf, w, h, zmax: hi, tol, bsize, bw, bh, bmax }
     }
 
     pub fn heightfield(&self) -> &Heightfield {
@@ -103,7 +117,60 @@ impl<'a> Visibility<'a> {
         let ddiag = dx - dy;
         let z = self.hf.samples();
         let wu = self.w as usize;
+        let bs = self.bsize;
+        let (mut cur_bx, mut cur_by) = ((cx as i64).div_euclid(bs), (cy as i64).div_euclid(bs));
+        // Distance at which the ray entered the current cell.
+        let mut s_in = 0.0f64;
         loop {
+            // Entering a new block: skip it whole if even its highest point cannot beat `best`
+            // (every point of the block is at least `s_in` away).
+            if bs > 1 {
+                let (bx, by) = ((cx as i64).div_euclid(bs), (cy as i64).div_euclid(bs));
+                if bx != cur_bx || by != cur_by {
+                    cur_bx = bx;
+                    cur_by = by;
+                    let bi = (by.rem_euclid(self.bh) * self.bw + bx.rem_euclid(self.bw)) as usize;
+                    if s_in > MIN_RUN && self.bmax[bi] - pz <= best * s_in {
+                        let edge = |p: f64, d: f64, b: i64| {
+                            if d > 0.0 {
+                                ((b + 1) * bs) as f64 - p
+                            } else if d < 0.0 {
+                                (b * bs) as f64 - p
+                            } else {
+                                f64::INFINITY
+                            }
+                        };
+                        let ex = if dx != 0.0 { edge(px, dx, bx) / dx } else { f64::INFINITY };
+                        let ey = if dy != 0.0 { edge(py, dy, by) / dy } else { f64::INFINITY };
+                        let s_out = ex.min(ey);
+                        if headroom <= best * s_out {
+                            return best;
+                        }
+                        // Restart the cell walk just past the block's exit.
+                        let probe = s_out + 1e-7;
+                        cx = (px + probe * dx).floor();
+                        cy = (py + probe * dy).floor();
+                        ix = (cx as i64).rem_euclid(self.w);
+                        iy = (cy as i64).rem_euclid(self.h);
+                        tmax_x = if dx > 0.0 {
+                            (cx + 1.0 - px) / dx
+                        } else if dx < 0.0 {
+                            (cx - px) / dx
+                        } else {
+                            f64::INFINITY
+                        };
+                        tmax_y = if dy > 0.0 {
+                            (cy + 1.0 - py) / dy
+                        } else if dy < 0.0 {
+                            (cy - py) / dy
+                        } else {
+                            f64::INFINITY
+                        };
+                        s_in = s_out;
+                        continue;
+                    }
+                }
+            }
             let s_exit = tmax_x.min(tmax_y);
             // Corners of the current (wrapped) cell.
             let ix1 = if ix + 1 == self.w { 0 } else { ix + 1 } as usize;
@@ -116,7 +183,7 @@ impl<'a> Visibility<'a> {
             // Diagonal crossing inside this cell: (px + s dx - cx) = (py + s dy - cy).
             if ddiag != 0.0 {
                 let sd = ((py - cy) - (px - cx)) / ddiag;
-                if sd > MIN_RUN && sd < s_exit {
+                if sd > MIN_RUN && sd >= s_in && sd < s_exit {
                     let f = (px + sd * dx - cx).clamp(0.0, 1.0);
                     let hgt = z00 + (z11 - z00) * f;
                     let slope = (hgt - pz) / sd;
@@ -151,6 +218,7 @@ impl<'a> Visibility<'a> {
                 }
             }
             // Step to the next cell.
+            s_in = s_exit;
             if tmax_x < tmax_y {
                 tmax_x += inv_dx;
                 cx += sx as f64;
@@ -225,5 +293,51 @@ mod tests {
         // the horizon slope is exactly 1
         let hzn = v.horizon(px, py, pz, 1.0, 0.0, 0.0, f64::INFINITY);
         assert!((hzn - 1.0).abs() < 1e-12, "{hzn}");
+    }
+
+    /// Brute-force horizon: the surface height at every breakpoint (crossings of x = i, y = j and
+    /// x - y = k) up to distance `s_max`, through `Heightfield::surface_height`.
+    fn brute_horizon(hf: &Heightfield, px: f64, py: f64, pz: f64, dx: f64, dy: f64, s_max: f64) -> f64 {
+        let mut ss = Vec::new();
+        let mut add = |p0: f64, d: f64| {
+            if d.abs() < 1e-12 {
+                return;
+            }
+            let (lo, hi) = if d > 0.0 { (p0, p0 + s_max * d) } else { (p0 + s_max * d, p0) };
+            let mut k = lo.floor();
+            while k <= hi.ceil() {
+                let s = (k - p0) / d;
+                if s > 1e-7 && s <= s_max {
+                    ss.push(s);
+                }
+                k += 1.0;
+            }
+        };
+        add(px, dx);
+        add(py, dy);
+        add(px - py, dx - dy);
+        ss.iter()
+            .map(|&s| (hf.surface_height(px + s * dx, py + s * dy) - pz) / s)
+            .fold(f64::NEG_INFINITY, f64::max)
+    }
+
+    #[test]
+    fn march_with_block_skipping_matches_brute_force() {
+        let mut r = crate::rng::Rng::new(5);
+        for &n in &[13usize, 16, 24] {
+            let z: Vec<f64> = (0..n * n).map(|_| r.range(0.0, 3.0)).collect();
+            let hf = Heightfield::new(n, n, z, 1.0, "rand").unwrap();
+            let v = Visibility::new(&hf);
+            for _ in 0..300 {
+                let (px, py) = (r.range(0.0, n as f64), r.range(0.0, n as f64));
+                let pz = hf.surface_height(px, py);
+                let phi = r.range(0.0, std::f64::consts::TAU);
+                let (dx, dy) = (phi.cos(), phi.sin());
+                let floor = 0.05;
+                let got = v.horizon(px, py, pz, dx, dy, floor, f64::INFINITY);
+                let want = brute_horizon(&hf, px, py, pz, dx, dy, 3.0 / floor + 2.0).max(floor);
+                assert!((got - want).abs() < 1e-9 * (1.0 + want.abs()), "n {n} p ({px},{py}) phi {phi}: {got} vs {want}");
+            }
+        }
     }
 }
