@@ -183,12 +183,18 @@ pub fn accuracy(cases: usize, seed: u64) -> Result<String> {
         let pre = Prefiltered::build(&mat, &PrefilterConfig::default());
         let fast = crate::fast::fbar(&geo, &pre, &dirs);
         let e = relative_rms(&fast, &exact);
-        let keep: Vec<usize> = (0..pairs.len()).filter(|&i| pairs[i].theta_i <= 85.0 && pairs[i].theta_o <= 85.0).collect();
+        let keep: Vec<usize> = (0..pairs.len())
+            .filter(|&i| pairs[i].theta_i <= 85.0 && pairs[i].theta_o <= 85.0)
+            .collect();
         let pick = |v: &[f64]| keep.iter().map(|&i| v[i]).collect::<Vec<f64>>();
         let e85 = relative_rms(&pick(&fast), &pick(&exact));
         errs.push(e);
         errs85.push(e85);
-        rows.push_str(&format!("| {c} | `{gs}` | `{ms}` | {:.2} % | {:.2} % |\n", 100.0 * e, 100.0 * e85));
+        rows.push_str(&format!(
+            "| {c} | `{gs}` | `{ms}` | {:.2} % | {:.2} % |\n",
+            100.0 * e,
+            100.0 * e85
+        ));
     }
     let summary = |name: &str, errs: &[f64]| {
         let mut sorted = errs.to_vec();

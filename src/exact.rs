@@ -1,12 +1,20 @@
 //! The exact evaluator of `fbar`: the facet sum of the design notes with joint visibility.
 //!
 //! `fbar(wi, wo) = Σ_t A_t (n_t·wo)+ (n_t·wi)+ f_r(n_t, wi, wo) V_t(wi, wo) / a_v(wo)`, where the
-//! joint visibility `V_t` of facet `t` is the fraction of its area seen from both directions,
-//! integrated with `s²` stratified points per facet (the centroids of its `s × s` subdivision),
-//! each tested with the exact ray march of [`crate::visibility`]. `a_v(wo)` is the visible
-//! projected area found by the same points, so a flat patch is exact and the identity
-//! `a_v(wo) = A_base cos(theta_o)` checks the visibility code. This is the reference every fast
-//! path is measured against and the re-ranking step of the solvers.
+//! joint visibility `V_t` of facet `t` is the fraction of its area seen from both directions.
+//!
+//! The sum is integrated in the view's projection, as a renderer would: parallel rays arrive from
+//! `wo` on a regular `s × s` grid per cell of the base period (in the oblique projection along
+//! `wo`, where every ray carries the same projected area `A_base cos(theta_o) / N`); each ray's
+//! first hit ([`Visibility::first_hit`]) is the point it sees, and that point is lit if the exact
+//! march towards `wi` ([`Visibility::visible`]) is clear. Then `A_t (n_t·wo)+ V_t(wo) / a_v(wo)` is
+//! the share of rays that hit facet `t`, so `a_v(wo) = A_base cos(theta_o)` holds by construction,
+//! and the thin visible slivers of walls at grazing view angles get rays in proportion to their
+//! projected area, which a sampling of the surface itself would miss. This is the reference every
+//! fast path is measured against and the re-ranking step of the solvers.
+//!
+//! [`ExactEvaluator::visible_projected_area`] estimates `a_v` the other way, from stratified points
+//! on each facet tested with the march; it checks the shadow test against the identity.
 
 use crate::frame::{DirPair, Vec3};
 use crate::heightfield::{Facet, Heightfield};
@@ -14,9 +22,6 @@ use crate::material::Material;
 use crate::visibility::Visibility;
 use rayon::prelude::*;
 use std::collections::HashMap;
-
-/// Pairs are evaluated in chunks so that the cached visibility masks stay small.
-const PAIR_CHUNK: usize = 512;
 
 /// A stratified surface point with the facet it lies on.
 #[derive(Debug, Clone, Copy)]
@@ -55,34 +60,89 @@ pub fn surface_points(facets: &[Facet], s: usize) -> Vec<SurfacePoint> {
 pub struct ExactEvaluator<'a> {
     vis: Visibility<'a>,
     facets: Vec<Facet>,
-    points: Vec<SurfacePoint>,
-    /// Points per facet (`s²`).
-    per_facet: usize,
+    /// View rays per cell side.
+    s: usize,
 }
 
 /// A bit mask over surface points.
 type Mask = Vec<u64>;
 
 impl<'a> ExactEvaluator<'a> {
-    /// `s` points per facet side (`s²` per facet); 2 is the default reference quality.
+    /// `s` view rays per cell side (`s²` per cell of the base period); 2 is the default.
     pub fn new(hf: &'a Heightfield, s: usize) -> Self {
-        let facets = hf.facets();
-        let points = surface_points(&facets, s);
         ExactEvaluator {
             vis: Visibility::new(hf),
-            facets,
-            points,
-            per_facet: s.max(1) * s.max(1),
+            facets: hf.facets(),
+            s: s.max(1),
         }
+    }
+
+    /// Number of view rays per direction.
+    pub fn rays(&self) -> usize {
+        let hf = self.vis.heightfield();
+        hf.width() * hf.height() * self.s * self.s
+    }
+
+    /// First hits of the view rays arriving from `wo`, as `(facet, point)` sorted by facet.
+    pub fn view_hits(&self, wo: Vec3) -> Vec<(u32, Vec3)> {
+        let hf = self.vis.heightfield();
+        let (nx, ny) = (hf.width() * self.s, hf.height() * self.s);
+        let inv = 1.0 / self.s as f64;
+        // One ray per sub-cell of an `s × s` split of every cell (stratified), placed inside its
+        // sub-cell by a quasi-random offset that varies with the row (for u) and the column (for
+        // v). A plain regular grid would sample a straight shadow edge of grid-aligned geometry
+        // at the same place in every row, so its error would not average out.
+        let jitter = |k: usize, g: f64| (0.5 + k as f64 * g).fract();
+        let mut hits: Vec<(u32, Vec3)> = (0..ny)
+            .into_par_iter()
+            .flat_map_iter(|j| {
+                (0..nx).map(move |i| {
+                    let (p, f) = self.vis.first_hit(
+                        (i as f64 + jitter(j, 0.618_033_988_749_895)) * inv,
+                        (j as f64 + jitter(i, 0.414_213_562_373_095)) * inv,
+                        wo,
+                    );
+                    (f as u32, p)
+                })
+            })
+            .collect();
+        hits.sort_by_key(|h| h.0);
+        hits
+    }
+
+    /// `Σ_t f_r(n_t) (n_t·wi)` over the hits lit from `wi`, divided by the ray count.
+    fn shade(&self, mat: &Material, hits: &[(u32, Vec3)], wi: Vec3, wo: Vec3) -> f64 {
+        let mut sum = 0.0;
+        let mut k = 0;
+        while k < hits.len() {
+            let t = hits[k].0;
+            let mut end = k;
+            while end < hits.len() && hits[end].0 == t {
+                end += 1;
+            }
+            let f = &self.facets[t as usize];
+            let ci = f.n.dot(wi);
+            if ci > 0.0 {
+                let lit = hits[k..end]
+                    .iter()
+                    .filter(|(_, p)| self.vis.visible(p.x, p.y, p.z, wi))
+                    .count();
+                if lit > 0 {
+                    sum += lit as f64 * ci * mat.eval(f.n, wi, wo);
+                }
+            }
+            k = end;
+        }
+        sum / hits.len().max(1) as f64
     }
 
     pub fn facets(&self) -> &[Facet] {
         &self.facets
     }
 
-    /// Which surface points see `w` (false for back-facing facets).
-    pub fn mask(&self, w: Vec3) -> Mask {
-        let n = self.points.len();
+    /// Which of `points` see `w` (false for back-facing facets).
+    fn mask(&self, points: &[SurfacePoint], w: Vec3) -> Mask {
+        let n = points.len();
         let mut mask = vec![0u64; n.div_ceil(64)];
         mask.par_chunks_mut(16).enumerate().for_each(|(ci, words)| {
             for (wi, word) in words.iter_mut().enumerate() {
@@ -93,7 +153,7 @@ impl<'a> ExactEvaluator<'a> {
                     if idx >= n {
                         break;
                     }
-                    let sp = self.points[idx];
+                    let sp = points[idx];
                     if self.facets[sp.facet as usize].n.dot(w) <= 0.0 {
                         continue;
                     }
@@ -107,116 +167,119 @@ impl<'a> ExactEvaluator<'a> {
         mask
     }
 
-    /// Visible projected area `a_v(w) = Σ A (n·w)+ V(w)` in grid units², from the surface points.
+    /// Visible projected area `a_v(w) = Σ A (n·w)+ V(w)` in grid units², estimated from `s²`
+    /// stratified points per facet, each tested with the shadow march towards `w`. It converges to
+    /// `A_base cos(theta)` as `s` grows (slowly at grazing angles, where visible slivers are thin):
+    /// a check of the shadow test, not what `fbar` uses.
     pub fn visible_projected_area(&self, w: Vec3) -> f64 {
-        let m = self.mask(w);
-        self.projected_area_of(&m, w)
-    }
-
-    fn projected_area_of(&self, m: &Mask, w: Vec3) -> f64 {
+        let points = surface_points(&self.facets, self.s);
+        let per_facet = self.s * self.s;
+        let m = self.mask(&points, w);
         let mut total = 0.0;
         for (t, f) in self.facets.iter().enumerate() {
-            let c = self.count(m, None, t);
+            let c = count(&m, t, per_facet);
             if c > 0 {
                 total += f.area * f.n.dot(w) * c as f64;
             }
         }
-        total / self.per_facet as f64
+        total / per_facet as f64
     }
 
-    /// Number of points of facet `t` set in `a` (and in `b`, if given).
-    #[inline]
-    fn count(&self, a: &Mask, b: Option<&Mask>, t: usize) -> u32 {
-        let lo = t * self.per_facet;
-        let hi = lo + self.per_facet;
-        let mut c = 0;
-        let mut i = lo;
-        while i < hi {
-            let word = i / 64;
-            let bit = i % 64;
-            let take = (64 - bit).min(hi - i);
-            let sel = if take == 64 {
-                u64::MAX
-            } else {
-                ((1u64 << take) - 1) << bit
-            };
-            let mut v = a[word] & sel;
-            if let Some(b) = b {
-                v &= b[word];
-            }
-            c += v.count_ones();
-            i += take;
-        }
-        c
-    }
-
-    /// `fbar` (cosine of the light direction included) at every pair. Pairs with a direction at or
-    /// below the horizon give 0.
+    /// `fbar` (cosine of the light direction included) at every pair; 0 for a direction at or
+    /// below the horizon. The integral is estimated from both ends — rays from `wo` shaded
+    /// towards `wi`, and rays from `wi` shaded towards `wo` (an estimate of `fbar(wo, wi)`, turned
+    /// into one of `fbar(wi, wo)` by reciprocity, `· cos(theta_i) / cos(theta_o)`) — and the two
+    /// are averaged: half the variance where few rays see a lit area (both directions grazing),
+    /// and a result reciprocal by construction. [`Self::fbar_one_sided`] gives either estimate.
     pub fn fbar(&self, mat: &Material, pairs: &[DirPair]) -> Vec<f64> {
-        let mut out = Vec::with_capacity(pairs.len());
-        for chunk in pairs.chunks(PAIR_CHUNK) {
-            // Distinct directions of the chunk, masks computed once each.
-            let mut dirs: Vec<Vec3> = Vec::new();
-            let mut index: HashMap<[u64; 3], usize> = HashMap::new();
-            let mut idx_of = |w: Vec3, dirs: &mut Vec<Vec3>| {
-                let key = [w.x.to_bits(), w.y.to_bits(), w.z.to_bits()];
-                *index.entry(key).or_insert_with(|| {
-                    dirs.push(w);
-                    dirs.len() - 1
+        let a = self.fbar_one_sided(mat, pairs);
+        let swapped: Vec<DirPair> = pairs
+            .iter()
+            .map(|p| DirPair { wi: p.wo, wo: p.wi })
+            .collect();
+        let b = self.fbar_one_sided(mat, &swapped);
+        pairs
+            .iter()
+            .zip(a.iter().zip(&b))
+            .map(|(p, (x, y))| {
+                if p.wi.z <= 0.0 || p.wo.z <= 0.0 {
+                    return 0.0;
+                }
+                let v = 0.5 * (x + y * p.wi.z / p.wo.z);
+                if v.is_finite() {
+                    v
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    }
+
+    /// The one-sided estimate of `fbar`: rays from `wo` only, shaded towards `wi`. Pairs sharing
+    /// a view direction share its rays.
+    pub fn fbar_one_sided(&self, mat: &Material, pairs: &[DirPair]) -> Vec<f64> {
+        // Group the pairs by view direction.
+        let mut groups: HashMap<[u64; 3], Vec<usize>> = HashMap::new();
+        let mut order: Vec<[u64; 3]> = Vec::new();
+        for (k, p) in pairs.iter().enumerate() {
+            let key = [p.wo.x.to_bits(), p.wo.y.to_bits(), p.wo.z.to_bits()];
+            groups
+                .entry(key)
+                .or_insert_with(|| {
+                    order.push(key);
+                    Vec::new()
                 })
-            };
-            let ids: Vec<(usize, usize)> = chunk
-                .iter()
-                .map(|p| (idx_of(p.wi, &mut dirs), idx_of(p.wo, &mut dirs)))
-                .collect();
-            let masks: Vec<Mask> = dirs
-                .iter()
-                .map(|&w| if w.z > 0.0 { self.mask(w) } else { Vec::new() })
-                .collect();
-            let av: Vec<f64> = dirs
-                .iter()
-                .zip(&masks)
-                .map(|(&w, m)| {
-                    if w.z > 0.0 {
-                        self.projected_area_of(m, w)
-                    } else {
-                        0.0
-                    }
-                })
-                .collect();
-            let vals: Vec<f64> = chunk
-                .par_iter()
-                .zip(ids.par_iter())
-                .map(|(pair, &(ii, io))| {
-                    if pair.wi.z <= 0.0 || pair.wo.z <= 0.0 || av[io] <= 0.0 {
-                        return 0.0;
-                    }
-                    let (mi, mo) = (&masks[ii], &masks[io]);
-                    let mut sum = 0.0;
-                    for (t, f) in self.facets.iter().enumerate() {
-                        let ci = f.n.dot(pair.wi);
-                        let co = f.n.dot(pair.wo);
-                        if ci <= 0.0 || co <= 0.0 {
-                            continue;
-                        }
-                        let c = self.count(mi, Some(mo), t);
-                        if c == 0 {
-                            continue;
-                        }
-                        sum += f.area * c as f64 * co * ci * mat.eval(f.n, pair.wi, pair.wo);
-                    }
-                    let v = sum / self.per_facet as f64 / av[io];
-                    if v.is_finite() {
-                        v
-                    } else {
-                        0.0
-                    }
-                })
-                .collect();
-            out.extend(vals);
+                .push(k);
+        }
+        let results: Vec<Vec<(usize, f64)>> = order
+            .par_iter()
+            .map(|key| {
+                let idx = &groups[key];
+                let wo = pairs[idx[0]].wo;
+                if wo.z <= 0.0 {
+                    return idx.iter().map(|&k| (k, 0.0)).collect();
+                }
+                let hits = self.view_hits(wo);
+                idx.iter()
+                    .map(|&k| {
+                        let wi = pairs[k].wi;
+                        let v = if wi.z > 0.0 {
+                            self.shade(mat, &hits, wi, wo)
+                        } else {
+                            0.0
+                        };
+                        (k, if v.is_finite() { v } else { 0.0 })
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut out = vec![0.0; pairs.len()];
+        for (k, v) in results.into_iter().flatten() {
+            out[k] = v;
         }
         out
     }
+}
+
+/// Number of points of facet `t` set in mask `a`, with `per_facet` contiguous points per facet.
+fn count(a: &[u64], t: usize, per_facet: usize) -> u32 {
+    let lo = t * per_facet;
+    let hi = lo + per_facet;
+    let mut c = 0;
+    let mut i = lo;
+    while i < hi {
+        let word = i / 64;
+        let bit = i % 64;
+        let take = (64 - bit).min(hi - i);
+        let sel = if take == 64 {
+            u64::MAX
+        } else {
+            ((1u64 << take) - 1) << bit
+        };
+        c += (a[word] & sel).count_ones();
+        i += take;
+    }
+    c
 }
 
 #[cfg(test)]

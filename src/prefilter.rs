@@ -31,7 +31,12 @@ pub struct PrefilterConfig {
 
 impl Default for PrefilterConfig {
     fn default() -> Self {
-        PrefilterConfig { n_half: 24, n_theta_mu: 48, n_phi_mu: 13, samples: 96 }
+        PrefilterConfig {
+            n_half: 24,
+            n_theta_mu: 48,
+            n_phi_mu: 13,
+            samples: 96,
+        }
     }
 }
 
@@ -42,9 +47,11 @@ pub const KAPPAS: [f64; 19] = [
 ];
 
 /// A material's prefiltered table.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct Prefiltered {
     pub cfg: PrefilterConfig,
+    /// The material itself, for lobes so narrow that `F` is the BRDF at the lobe's centre.
+    material: Material,
     /// `[i_half][i_kappa][i_theta_mu][i_phi_mu]`.
     pub data: Vec<f32>,
     lk: Vec<f64>,
@@ -145,6 +152,7 @@ impl Prefiltered {
             .collect();
         Prefiltered {
             cfg: cfg.clone(),
+            material: mat.clone(),
             data,
             lk: KAPPAS.iter().map(|k| k.ln_1p()).collect(),
         }
@@ -162,8 +170,24 @@ impl Prefiltered {
         self.data.len() * 4
     }
 
-    /// `F(wi, wo; lobe)` by multilinear interpolation of the table.
+    /// `F(wi, wo; lobe)`: for a lobe far narrower than every glossy lobe of the material (angular
+    /// width `1/sqrt(kappa)` under a hundredth of it, kappa ≥ 1e5 — flat facets, planar walls),
+    /// the material at the lobe's centre, `f_r(mu) (mu·wi)+`, which is exact in the limit and
+    /// makes a flat patch exact; otherwise multilinear interpolation of the table.
     pub fn eval(&self, wi: Vec3, wo: Vec3, lobe: &Vmf) -> f64 {
+        if lobe.kappa >= 1e5
+            && self
+                .material
+                .min_lobe_width()
+                .is_none_or(|a| a * a * lobe.kappa >= 1e4)
+        {
+            let c = lobe.mu.dot(wi);
+            return if c > 0.0 {
+                self.material.eval(lobe.mu, wi, wo) * c
+            } else {
+                0.0
+            };
+        }
         let Some((x, y, h, th)) = half_frame(wi, wo) else {
             return 0.0;
         };

@@ -16,6 +16,7 @@
 //! are skipped whole. Back-facing points are occluded by their own facet, which the first
 //! breakpoint finds.
 
+use crate::frame::Vec3;
 use crate::heightfield::Heightfield;
 
 /// Breakpoints closer than this (grid units) to the start are skipped: the start's own facet is
@@ -49,17 +50,34 @@ impl<'a> Visibility<'a> {
         let (lo, hi) = hf.min_max();
         let tol = 1e-10 * (1.0 + (hi - lo).abs());
         let (w, h) = (hf.width() as i64, hf.height() as i64);
-        let bsize = [8i64, 4, 2].into_iter().find(|b| w % b == 0 && h % b == 0).unwrap_or(1);
+        let bsize = [8i64, 4, 2]
+            .into_iter()
+            .find(|b| w % b == 0 && h % b == 0)
+            .unwrap_or(1);
         let (bw, bh) = (w / bsize, h / bsize);
         let mut bmax = vec![f64::NEG_INFINITY; (bw * bh) as usize];
         for y in 0..h {
             for x in 0..w {
-                let m = hf.at(x, y).max(hf.at(x + 1, y)).max(hf.at(x, y + 1)).max(hf.at(x + 1, y + 1));
+                let m = hf
+                    .at(x, y)
+                    .max(hf.at(x + 1, y))
+                    .max(hf.at(x, y + 1))
+                    .max(hf.at(x + 1, y + 1));
                 let b = &mut bmax[((y / bsize) * bw + x / bsize) as usize];
                 *b = b.max(m);
             }
         }
-        Visibility { hf, w, h, zmax: hi, tol, bsize, bw, bh, bmax }
+        Visibility {
+            hf,
+            w,
+            h,
+            zmax: hi,
+            tol,
+            bsize,
+            bw,
+            bh,
+            bmax,
+        }
     }
 
     pub fn heightfield(&self) -> &Heightfield {
@@ -83,110 +101,33 @@ impl<'a> Visibility<'a> {
     ) -> f64 {
         let mut best = floor.max(MIN_SLOPE);
         let headroom = self.zmax - pz;
-        // Unwrapped cell and wrapped indices.
-        let mut cx = px.floor();
-        let mut cy = py.floor();
-        let mut ix = (cx as i64).rem_euclid(self.w);
-        let mut iy = (cy as i64).rem_euclid(self.h);
-        let sx: i64 = if dx > 0.0 { 1 } else { -1 };
-        let sy: i64 = if dy > 0.0 { 1 } else { -1 };
-        let inv_dx = if dx != 0.0 {
-            1.0 / dx.abs()
-        } else {
-            f64::INFINITY
-        };
-        let inv_dy = if dy != 0.0 {
-            1.0 / dy.abs()
-        } else {
-            f64::INFINITY
-        };
-        let mut tmax_x = if dx > 0.0 {
-            (cx + 1.0 - px) * inv_dx
-        } else if dx < 0.0 {
-            (px - cx) * inv_dx
-        } else {
-            f64::INFINITY
-        };
-        let mut tmax_y = if dy > 0.0 {
-            (cy + 1.0 - py) * inv_dy
-        } else if dy < 0.0 {
-            (py - cy) * inv_dy
-        } else {
-            f64::INFINITY
-        };
-        let ddiag = dx - dy;
-        let z = self.hf.samples();
-        let wu = self.w as usize;
-        let bs = self.bsize;
-        let (mut cur_bx, mut cur_by) = ((cx as i64).div_euclid(bs), (cy as i64).div_euclid(bs));
-        // Distance at which the ray entered the current cell.
-        let mut s_in = 0.0f64;
+        // On a line that repeats after `period`, later copies of a point are farther away, so
+        // none beats the first period's best positive slope.
+        let period = self.line_period(dx, dy).unwrap_or(f64::INFINITY);
+        let mut walk = CellWalk::new(px, py, dx, dy, self.w, self.h);
+        let mut cur_block = walk.block(self.bsize);
         loop {
             // Entering a new block: skip it whole if even its highest point cannot beat `best`
             // (every point of the block is at least `s_in` away).
-            if bs > 1 {
-                let (bx, by) = ((cx as i64).div_euclid(bs), (cy as i64).div_euclid(bs));
-                if bx != cur_bx || by != cur_by {
-                    cur_bx = bx;
-                    cur_by = by;
-                    let bi = (by.rem_euclid(self.bh) * self.bw + bx.rem_euclid(self.bw)) as usize;
-                    if s_in > MIN_RUN && self.bmax[bi] - pz <= best * s_in {
-                        let edge = |p: f64, d: f64, b: i64| {
-                            if d > 0.0 {
-                                ((b + 1) * bs) as f64 - p
-                            } else if d < 0.0 {
-                                (b * bs) as f64 - p
-                            } else {
-                                f64::INFINITY
-                            }
-                        };
-                        let ex = if dx != 0.0 { edge(px, dx, bx) / dx } else { f64::INFINITY };
-                        let ey = if dy != 0.0 { edge(py, dy, by) / dy } else { f64::INFINITY };
-                        let s_out = ex.min(ey);
+            if self.bsize > 1 {
+                let b = walk.block(self.bsize);
+                if b != cur_block {
+                    cur_block = b;
+                    if walk.s_in > MIN_RUN && self.block_max(b) - pz <= best * walk.s_in {
+                        let s_out = walk.block_exit(self.bsize, b);
                         if headroom <= best * s_out {
                             return best;
                         }
-                        // Restart the cell walk just past the block's exit.
-                        let probe = s_out + 1e-7;
-                        cx = (px + probe * dx).floor();
-                        cy = (py + probe * dy).floor();
-                        ix = (cx as i64).rem_euclid(self.w);
-                        iy = (cy as i64).rem_euclid(self.h);
-                        tmax_x = if dx > 0.0 {
-                            (cx + 1.0 - px) / dx
-                        } else if dx < 0.0 {
-                            (cx - px) / dx
-                        } else {
-                            f64::INFINITY
-                        };
-                        tmax_y = if dy > 0.0 {
-                            (cy + 1.0 - py) / dy
-                        } else if dy < 0.0 {
-                            (cy - py) / dy
-                        } else {
-                            f64::INFINITY
-                        };
-                        s_in = s_out;
+                        walk.restart(s_out);
                         continue;
                     }
                 }
             }
-            let s_exit = tmax_x.min(tmax_y);
-            // Corners of the current (wrapped) cell.
-            let ix1 = if ix + 1 == self.w { 0 } else { ix + 1 } as usize;
-            let iy1 = if iy + 1 == self.h { 0 } else { iy + 1 } as usize;
-            let (ixu, iyu) = (ix as usize, iy as usize);
-            let z00 = z[iyu * wu + ixu];
-            let z10 = z[iyu * wu + ix1];
-            let z01 = z[iy1 * wu + ixu];
-            let z11 = z[iy1 * wu + ix1];
-            // Diagonal crossing inside this cell: (px + s dx - cx) = (py + s dy - cy).
-            if ddiag != 0.0 {
-                let sd = ((py - cy) - (px - cx)) / ddiag;
-                if sd > MIN_RUN && sd >= s_in && sd < s_exit {
-                    let f = (px + sd * dx - cx).clamp(0.0, 1.0);
-                    let hgt = z00 + (z11 - z00) * f;
-                    let slope = (hgt - pz) / sd;
+            let c = self.corners(&walk);
+            let s_exit = walk.s_exit();
+            if let Some(sd) = walk.diagonal_crossing() {
+                if sd > MIN_RUN {
+                    let slope = (walk.height_at(sd, &c) - pz) / sd;
                     if slope > best {
                         best = slope;
                         if best > stop_above + self.tol {
@@ -195,54 +136,186 @@ impl<'a> Visibility<'a> {
                     }
                 }
             }
-            // Exit point of the cell.
             if s_exit > MIN_RUN {
-                let fx = (px + s_exit * dx - cx).clamp(0.0, 1.0);
-                let fy = (py + s_exit * dy - cy).clamp(0.0, 1.0);
-                let hgt = if fx >= fy {
-                    z00 + (z10 - z00) * fx + (z11 - z10) * fy
-                } else {
-                    z00 + (z11 - z01) * fx + (z01 - z00) * fy
-                };
-                let slope = (hgt - pz) / s_exit;
+                let slope = (walk.height_at(s_exit, &c) - pz) / s_exit;
                 if slope > best {
                     best = slope;
                     if best > stop_above + self.tol {
                         return best;
                     }
                 }
-                // Nothing farther can rise above max(best, threshold).
-                let bound = headroom / s_exit;
-                if bound <= best {
+                // Nothing farther can rise above the best slope so far.
+                if headroom / s_exit <= best || s_exit > period {
                     return best;
                 }
             }
-            // Step to the next cell.
-            s_in = s_exit;
-            if tmax_x < tmax_y {
-                tmax_x += inv_dx;
-                cx += sx as f64;
-                ix += sx;
-                if ix == self.w {
-                    ix = 0;
-                } else if ix < 0 {
-                    ix = self.w - 1;
-                }
-            } else {
-                tmax_y += inv_dy;
-                cy += sy as f64;
-                iy += sy;
-                if iy == self.h {
-                    iy = 0;
-                } else if iy < 0 {
-                    iy = self.h - 1;
-                }
-            }
+            walk.step();
         }
     }
 
+    /// The length after which the surface along the horizontal line with unit direction
+    /// `(dx, dy)` repeats exactly, for the directions where that happens within a few periods:
+    /// along the grid axes and the diagonals (up to rounding of 1e-12). `None` otherwise.
+    fn line_period(&self, dx: f64, dy: f64) -> Option<f64> {
+        let (ax, ay) = (dx.abs(), dy.abs());
+        if ay <= 1e-12 * ax {
+            Some(self.w as f64 / ax)
+        } else if ax <= 1e-12 * ay {
+            Some(self.h as f64 / ay)
+        } else if (ax - ay).abs() <= 1e-12 * ax {
+            let (mut a, mut b) = (self.w, self.h);
+            while b != 0 {
+                (a, b) = (b, a % b);
+            }
+            Some((self.w / a * self.h) as f64 / ax)
+        } else {
+            None
+        }
+    }
+
+    /// The first surface point hit by the ray arriving from direction `w` (travelling along
+    /// `-w`) that crosses the base plane `z = 0` at `(u, v)`: the point and its facet index (in
+    /// the order of [`Heightfield::facets`]). `w` must point above the horizon.
+    pub fn first_hit(&self, u: f64, v: f64, w: Vec3) -> (Vec3, usize) {
+        let st = (w.x * w.x + w.y * w.y).sqrt();
+        if st <= 1e-12 || w.z <= 0.0 {
+            let z = self.hf.surface_height(u, v);
+            return (Vec3::new(u, v, z), self.facet_at(u, v));
+        }
+        let m = (w.z / st).max(MIN_SLOPE);
+        let (dx, dy) = (w.x / st, w.y / st);
+        // Start where the ray is at the highest surface point; walk along -d, descending.
+        let zs = self.zmax;
+        let (qx, qy) = (u + zs / m * dx, v + zs / m * dy);
+        let mut walk = CellWalk::new(qx, qy, -dx, -dy, self.w, self.h);
+        let mut cur_block = walk.block(self.bsize);
+        let g_at = |s: f64, h: f64| h - (zs - m * s);
+        let mut prev_s = 0.0;
+        let mut prev_g = g_at(0.0, self.hf.surface_height(qx, qy));
+        // On a line that repeats after `period`, once a whole period has been seen without a hit
+        // the ray can jump a whole number of periods, to just above the line's highest point.
+        let period = self.line_period(dx, dy);
+        let mut line_max = f64::NEG_INFINITY;
+        let mut jumped = false;
+        let hit = |walk: &CellWalk, s0: f64, g0: f64, s1: f64, g1: f64| {
+            let s = if g1 > g0 {
+                s0 + (s1 - s0) * (-g0 / (g1 - g0)).clamp(0.0, 1.0)
+            } else {
+                s1
+            };
+            let (fx, fy) = walk.local(0.5 * (s0 + s1));
+            let tri = if fx >= fy { 0 } else { 1 };
+            let p = Vec3::new(qx - s * dx, qy - s * dy, zs - m * s);
+            (
+                p,
+                2 * (walk.iy as usize * self.w as usize + walk.ix as usize) + tri,
+            )
+        };
+        if prev_g >= 0.0 {
+            return hit(&walk, 0.0, prev_g, 0.0, prev_g);
+        }
+        loop {
+            if self.bsize > 1 {
+                let b = walk.block(self.bsize);
+                if b != cur_block {
+                    cur_block = b;
+                    let s_out = walk.block_exit(self.bsize, b);
+                    // The ray is lowest at the block's exit; skip if it stays above the block.
+                    // (Not during the first period of a repeating line, whose exact maximum the
+                    // jump below needs.)
+                    if walk.s_in > 0.0
+                        && (period.is_none() || jumped)
+                        && self.block_max(b) < zs - m * s_out
+                    {
+                        walk.restart(s_out);
+                        prev_s = s_out;
+                        prev_g = g_at(
+                            s_out,
+                            self.hf.surface_height(qx - s_out * dx, qy - s_out * dy),
+                        );
+                        continue;
+                    }
+                }
+            }
+            let c = self.corners(&walk);
+            let s_exit = walk.s_exit();
+            if let Some(sd) = walk.diagonal_crossing() {
+                let hd = walk.height_at(sd, &c);
+                line_max = line_max.max(hd);
+                let g = g_at(sd, hd);
+                if g >= 0.0 {
+                    return hit(&walk, prev_s, prev_g, sd, g);
+                }
+                prev_s = sd;
+                prev_g = g;
+            }
+            let he = walk.height_at(s_exit, &c);
+            let g = g_at(s_exit, he);
+            if g >= 0.0 {
+                return hit(&walk, prev_s, prev_g, s_exit, g);
+            }
+            prev_s = s_exit;
+            prev_g = g;
+            if let Some(l) = period {
+                if !jumped {
+                    line_max = line_max.max(he);
+                    if s_exit > l {
+                        jumped = true;
+                        // Whole periods during which the ray stays above the line's maximum.
+                        let k = (((zs - line_max) / m - s_exit) / l).floor();
+                        if k >= 1.0 {
+                            let s_j = s_exit + k * l;
+                            walk.restart(s_j);
+                            prev_s = s_j;
+                            prev_g =
+                                g_at(s_j, self.hf.surface_height(qx - s_j * dx, qy - s_j * dy));
+                            continue;
+                        }
+                    }
+                }
+            }
+            walk.step();
+        }
+    }
+
+    /// Index of the facet containing base point `(x, y)`.
+    fn facet_at(&self, x: f64, y: f64) -> usize {
+        let (cx, cy) = (x.floor(), y.floor());
+        let ix = (cx as i64).rem_euclid(self.w) as usize;
+        let iy = (cy as i64).rem_euclid(self.h) as usize;
+        2 * (iy * self.w as usize + ix) + if x - cx >= y - cy { 0 } else { 1 }
+    }
+
+    fn block_max(&self, (bx, by): (i64, i64)) -> f64 {
+        self.bmax[(by.rem_euclid(self.bh) * self.bw + bx.rem_euclid(self.bw)) as usize]
+    }
+
+    /// Corner heights `[z00, z10, z01, z11]` of the walk's current cell.
+    #[inline]
+    fn corners(&self, walk: &CellWalk) -> [f64; 4] {
+        let z = self.hf.samples();
+        let wu = self.w as usize;
+        let ix1 = if walk.ix + 1 == self.w {
+            0
+        } else {
+            walk.ix + 1
+        } as usize;
+        let iy1 = if walk.iy + 1 == self.h {
+            0
+        } else {
+            walk.iy + 1
+        } as usize;
+        let (ix, iy) = (walk.ix as usize, walk.iy as usize);
+        [
+            z[iy * wu + ix],
+            z[iy * wu + ix1],
+            z[iy1 * wu + ix],
+            z[iy1 * wu + ix1],
+        ]
+    }
+
     /// Whether surface point `(px, py, pz)` sees unit direction `w` (which must have `w.z > 0`).
-    pub fn visible(&self, px: f64, py: f64, pz: f64, w: crate::frame::Vec3) -> bool {
+    pub fn visible(&self, px: f64, py: f64, pz: f64, w: Vec3) -> bool {
         let st = (w.x * w.x + w.y * w.y).sqrt();
         if st <= 0.0 {
             return true; // straight up: nothing on a heightfield is above the zenith ray
@@ -250,6 +323,161 @@ impl<'a> Visibility<'a> {
         let m = w.z / st;
         let (dx, dy) = (w.x / st, w.y / st);
         self.horizon(px, py, pz, dx, dy, m, m) <= m + self.tol
+    }
+}
+
+/// A walk through the grid cells crossed by the horizontal half-line `p + s d`, `s >= 0`, with
+/// unwrapped cell coordinates (for positions) and wrapped indices (for heights): a 2-D DDA.
+struct CellWalk {
+    px: f64,
+    py: f64,
+    dx: f64,
+    dy: f64,
+    w: i64,
+    h: i64,
+    /// Unwrapped lower-left corner of the current cell.
+    cx: f64,
+    cy: f64,
+    /// Wrapped cell indices.
+    ix: i64,
+    iy: i64,
+    /// Distances at which the walk crosses the next vertical / horizontal grid line.
+    tmax_x: f64,
+    tmax_y: f64,
+    /// Distance at which the walk entered the current cell.
+    s_in: f64,
+}
+
+impl CellWalk {
+    fn new(px: f64, py: f64, dx: f64, dy: f64, w: i64, h: i64) -> Self {
+        let mut c = CellWalk {
+            px,
+            py,
+            dx,
+            dy,
+            w,
+            h,
+            cx: 0.0,
+            cy: 0.0,
+            ix: 0,
+            iy: 0,
+            tmax_x: 0.0,
+            tmax_y: 0.0,
+            s_in: 0.0,
+        };
+        c.enter(0.0, 0.0);
+        c
+    }
+
+    /// Put the walk in the cell containing the point at distance `probe`, entered at `s_in`.
+    fn enter(&mut self, probe: f64, s_in: f64) {
+        self.cx = (self.px + probe * self.dx).floor();
+        self.cy = (self.py + probe * self.dy).floor();
+        self.ix = (self.cx as i64).rem_euclid(self.w);
+        self.iy = (self.cy as i64).rem_euclid(self.h);
+        let next = |c: f64, p: f64, d: f64| {
+            if d > 0.0 {
+                (c + 1.0 - p) / d
+            } else if d < 0.0 {
+                (c - p) / d
+            } else {
+                f64::INFINITY
+            }
+        };
+        self.tmax_x = next(self.cx, self.px, self.dx);
+        self.tmax_y = next(self.cy, self.py, self.dy);
+        self.s_in = s_in;
+    }
+
+    /// Restart just past distance `s` (after skipping a block).
+    fn restart(&mut self, s: f64) {
+        self.enter(s + 1e-7, s);
+    }
+
+    #[inline]
+    fn s_exit(&self) -> f64 {
+        self.tmax_x.min(self.tmax_y)
+    }
+
+    /// Local coordinates in the current cell of the point at distance `s`, clamped to `[0, 1]`.
+    #[inline]
+    fn local(&self, s: f64) -> (f64, f64) {
+        (
+            (self.px + s * self.dx - self.cx).clamp(0.0, 1.0),
+            (self.py + s * self.dy - self.cy).clamp(0.0, 1.0),
+        )
+    }
+
+    /// Surface height at distance `s` inside the current cell with corners `c`.
+    #[inline]
+    fn height_at(&self, s: f64, c: &[f64; 4]) -> f64 {
+        let (fx, fy) = self.local(s);
+        let [z00, z10, z01, z11] = *c;
+        if fx >= fy {
+            z00 + (z10 - z00) * fx + (z11 - z10) * fy
+        } else {
+            z00 + (z11 - z01) * fx + (z01 - z00) * fy
+        }
+    }
+
+    /// Where the walk crosses the current cell's diagonal `(x - cx) = (y - cy)`, if inside it.
+    #[inline]
+    fn diagonal_crossing(&self) -> Option<f64> {
+        let dd = self.dx - self.dy;
+        if dd == 0.0 {
+            return None;
+        }
+        let sd = ((self.py - self.cy) - (self.px - self.cx)) / dd;
+        (sd >= self.s_in && sd < self.s_exit()).then_some(sd)
+    }
+
+    #[inline]
+    fn step(&mut self) {
+        self.s_in = self.s_exit();
+        if self.tmax_x < self.tmax_y {
+            let sx = if self.dx > 0.0 { 1 } else { -1 };
+            self.tmax_x += 1.0 / self.dx.abs();
+            self.cx += sx as f64;
+            self.ix += sx;
+            if self.ix == self.w {
+                self.ix = 0;
+            } else if self.ix < 0 {
+                self.ix = self.w - 1;
+            }
+        } else {
+            let sy = if self.dy > 0.0 { 1 } else { -1 };
+            self.tmax_y += 1.0 / self.dy.abs();
+            self.cy += sy as f64;
+            self.iy += sy;
+            if self.iy == self.h {
+                self.iy = 0;
+            } else if self.iy < 0 {
+                self.iy = self.h - 1;
+            }
+        }
+    }
+
+    /// Unwrapped block of side `bs` holding the current cell.
+    #[inline]
+    fn block(&self, bs: i64) -> (i64, i64) {
+        (
+            (self.cx as i64).div_euclid(bs),
+            (self.cy as i64).div_euclid(bs),
+        )
+    }
+
+    /// Distance at which the walk leaves block `(bx, by)` of side `bs`.
+    fn block_exit(&self, bs: i64, (bx, by): (i64, i64)) -> f64 {
+        let edge = |p: f64, d: f64, b: i64| {
+            if d > 0.0 {
+                (((b + 1) * bs) as f64 - p) / d
+            } else if d < 0.0 {
+                ((b * bs) as f64 - p) / d
+            } else {
+                f64::INFINITY
+            }
+        };
+        edge(self.px, self.dx, bx).min(edge(self.py, self.dy, by))
     }
 }
 
@@ -297,13 +525,25 @@ mod tests {
 
     /// Brute-force horizon: the surface height at every breakpoint (crossings of x = i, y = j and
     /// x - y = k) up to distance `s_max`, through `Heightfield::surface_height`.
-    fn brute_horizon(hf: &Heightfield, px: f64, py: f64, pz: f64, dx: f64, dy: f64, s_max: f64) -> f64 {
+    fn brute_horizon(
+        hf: &Heightfield,
+        px: f64,
+        py: f64,
+        pz: f64,
+        dx: f64,
+        dy: f64,
+        s_max: f64,
+    ) -> f64 {
         let mut ss = Vec::new();
         let mut add = |p0: f64, d: f64| {
             if d.abs() < 1e-12 {
                 return;
             }
-            let (lo, hi) = if d > 0.0 { (p0, p0 + s_max * d) } else { (p0 + s_max * d, p0) };
+            let (lo, hi) = if d > 0.0 {
+                (p0, p0 + s_max * d)
+            } else {
+                (p0 + s_max * d, p0)
+            };
             let mut k = lo.floor();
             while k <= hi.ceil() {
                 let s = (k - p0) / d;
@@ -336,7 +576,49 @@ mod tests {
                 let floor = 0.05;
                 let got = v.horizon(px, py, pz, dx, dy, floor, f64::INFINITY);
                 let want = brute_horizon(&hf, px, py, pz, dx, dy, 3.0 / floor + 2.0).max(floor);
-                assert!((got - want).abs() < 1e-9 * (1.0 + want.abs()), "n {n} p ({px},{py}) phi {phi}: {got} vs {want}");
+                assert!(
+                    (got - want).abs() < 1e-9 * (1.0 + want.abs()),
+                    "n {n} p ({px},{py}) phi {phi}: {got} vs {want}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn first_hit_is_on_the_surface_visible_and_first() {
+        let mut r = crate::rng::Rng::new(9);
+        for &n in &[16usize, 13] {
+            let z: Vec<f64> = (0..n * n).map(|_| r.range(0.0, 3.0)).collect();
+            let hf = Heightfield::new(n, n, z, 1.0, "rand").unwrap();
+            let v = Visibility::new(&hf);
+            let facets = hf.facets();
+            for _ in 0..400 {
+                let w = crate::frame::dir_from_deg(r.range(0.0, 88.0), r.range(0.0, 360.0));
+                let (u, vv) = (r.range(0.0, n as f64), r.range(0.0, n as f64));
+                let (p, f) = v.first_hit(u, vv, w);
+                // on the surface, on its facet's plane
+                assert!((p.z - hf.surface_height(p.x, p.y)).abs() < 1e-9, "{p:?}");
+                let fa = facets[f];
+                let pw = Vec3::new(p.x.rem_euclid(n as f64), p.y.rem_euclid(n as f64), p.z);
+                assert!(fa.n.dot(pw - fa.v[0]).abs() < 1e-7, "facet {f} {p:?}");
+                // on the ray through (u, v, 0)
+                let t = p.z / w.z;
+                let base = p - w * t;
+                let wrap = |a: f64| (a - u - ((a - u) / n as f64).round() * n as f64).abs();
+                assert!(
+                    wrap(base.x) < 1e-7
+                        && (base.y - vv - ((base.y - vv) / n as f64).round() * n as f64).abs()
+                            < 1e-7
+                );
+                // nothing above the ray before the hit, and the hit sees w
+                for k in 1..200 {
+                    let q = p + w * (k as f64 * 0.05);
+                    assert!(
+                        hf.surface_height(q.x, q.y) <= q.z + 1e-9,
+                        "occluded before the hit"
+                    );
+                }
+                assert!(v.visible(p.x, p.y, p.z, w));
             }
         }
     }

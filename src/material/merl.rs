@@ -110,9 +110,11 @@ impl MerlBrdf {
         let (st, ct) = (-theta_h).sin_cos();
         let d = Vec3::new(ct * r1.x + st * r1.z, r1.y, -st * r1.x + ct * r1.z);
         let theta_d = d.z.clamp(-1.0, 1.0).acos();
-        let mut phi_d = d.y.atan2(d.x);
-        if phi_d < 0.0 {
-            phi_d += PI;
+        // phi_d modulo pi (reciprocity); a value within rounding of pi is 0, so that swapping wi
+        // and wo (which adds pi) lands in the same bin.
+        let mut phi_d = d.y.atan2(d.x).rem_euclid(PI);
+        if PI - phi_d < 1e-9 {
+            phi_d = 0.0;
         }
         let th = {
             let v = (theta_h / FRAC_PI_2).max(0.0).sqrt() * N_TH as f64;
@@ -123,14 +125,28 @@ impl MerlBrdf {
         Some(pd + td * N_PD + th * N_PD * N_TD)
     }
 
+    /// RGB value. The table is indexed from both `(wi, wo)` and `(wo, wi)`: they name the same bin
+    /// except where an angle falls on a bin edge, and there the two bins are averaged, so the
+    /// lookup is exactly reciprocal like the measured reflectance it stands for.
     pub fn eval_rgb(&self, n: Vec3, wi: Vec3, wo: Vec3) -> [f64; 3] {
-        match Self::index(n, wi, wo) {
-            None => [0.0; 3],
-            Some(i) => [
+        let at = |i: usize| {
+            [
                 self.data[0][i] as f64,
                 self.data[1][i] as f64,
                 self.data[2][i] as f64,
-            ],
+            ]
+        };
+        match (Self::index(n, wi, wo), Self::index(n, wo, wi)) {
+            (Some(a), Some(b)) if a == b => at(a),
+            (Some(a), Some(b)) => {
+                let (x, y) = (at(a), at(b));
+                [
+                    0.5 * (x[0] + y[0]),
+                    0.5 * (x[1] + y[1]),
+                    0.5 * (x[2] + y[2]),
+                ]
+            }
+            _ => [0.0; 3],
         }
     }
 
