@@ -13,8 +13,8 @@
 //! projected area, which a sampling of the surface itself would miss. This is the reference every
 //! fast path is measured against and the re-ranking step of the solvers.
 //!
-//! [`ExactEvaluator::visible_projected_area`] estimates `a_v` the other way, from stratified points
-//! on each facet tested with the march; it checks the shadow test against the identity.
+//! [`ExactEvaluator::visible_projected_area`] checks the two visibility codes against each other
+//! on that identity: every first hit must also pass the shadow march towards the viewer.
 
 use crate::frame::{DirPair, Vec3};
 use crate::heightfield::{Facet, Heightfield};
@@ -63,9 +63,6 @@ pub struct ExactEvaluator<'a> {
     /// View rays per cell side.
     s: usize,
 }
-
-/// A bit mask over surface points.
-type Mask = Vec<u64>;
 
 impl<'a> ExactEvaluator<'a> {
     /// `s` view rays per cell side (`s²` per cell of the base period); 2 is the default.
@@ -140,49 +137,22 @@ impl<'a> ExactEvaluator<'a> {
         &self.facets
     }
 
-    /// Which of `points` see `w` (false for back-facing facets).
-    fn mask(&self, points: &[SurfacePoint], w: Vec3) -> Mask {
-        let n = points.len();
-        let mut mask = vec![0u64; n.div_ceil(64)];
-        mask.par_chunks_mut(16).enumerate().for_each(|(ci, words)| {
-            for (wi, word) in words.iter_mut().enumerate() {
-                let base = (ci * 16 + wi) * 64;
-                let mut bits = 0u64;
-                for k in 0..64 {
-                    let idx = base + k;
-                    if idx >= n {
-                        break;
-                    }
-                    let sp = points[idx];
-                    if self.facets[sp.facet as usize].n.dot(w) <= 0.0 {
-                        continue;
-                    }
-                    if self.vis.visible(sp.p.x, sp.p.y, sp.p.z, w) {
-                        bits |= 1 << k;
-                    }
-                }
-                *word = bits;
-            }
-        });
-        mask
-    }
-
-    /// Visible projected area `a_v(w) = Σ A (n·w)+ V(w)` in grid units², estimated from `s²`
-    /// stratified points per facet, each tested with the shadow march towards `w`. It converges to
-    /// `A_base cos(theta)` as `s` grows (slowly at grazing angles, where visible slivers are thin):
-    /// a check of the shadow test, not what `fbar` uses.
+    /// Visible projected area `a_v(w)` in grid units² as the *shadow test* sees it: the share of
+    /// the view rays from `w` whose first hit also passes the shadow march towards `w`, times
+    /// `A_base cos(theta)`. The first-hit cast and the shadow march are independent codes over the
+    /// same surface; they agree exactly when both are right, so this equals `A_base cos(theta)`
+    /// (the identity of the design notes) unless one of them has a bug.
     pub fn visible_projected_area(&self, w: Vec3) -> f64 {
-        let points = surface_points(&self.facets, self.s);
-        let per_facet = self.s * self.s;
-        let m = self.mask(&points, w);
-        let mut total = 0.0;
-        for (t, f) in self.facets.iter().enumerate() {
-            let c = count(&m, t, per_facet);
-            if c > 0 {
-                total += f.area * f.n.dot(w) * c as f64;
-            }
+        if w.z <= 0.0 {
+            return 0.0;
         }
-        total / per_facet as f64
+        let hits = self.view_hits(w);
+        let seen = hits
+            .par_iter()
+            .filter(|(_, p)| self.vis.visible(p.x, p.y, p.z, w))
+            .count();
+        let hf = self.vis.heightfield();
+        hf.base_area() * w.z * seen as f64 / hits.len().max(1) as f64
     }
 
     /// `fbar` (cosine of the light direction included) at every pair; 0 for a direction at or
@@ -259,27 +229,6 @@ impl<'a> ExactEvaluator<'a> {
         }
         out
     }
-}
-
-/// Number of points of facet `t` set in mask `a`, with `per_facet` contiguous points per facet.
-fn count(a: &[u64], t: usize, per_facet: usize) -> u32 {
-    let lo = t * per_facet;
-    let hi = lo + per_facet;
-    let mut c = 0;
-    let mut i = lo;
-    while i < hi {
-        let word = i / 64;
-        let bit = i % 64;
-        let take = (64 - bit).min(hi - i);
-        let sel = if take == 64 {
-            u64::MAX
-        } else {
-            ((1u64 << take) - 1) << bit
-        };
-        c += (a[word] & sel).count_ones();
-        i += take;
-    }
-    c
 }
 
 #[cfg(test)]

@@ -81,7 +81,7 @@ static GENS: &[GenDef] = &[
     GenDef { name: "flat", help: "a flat patch; keys: n=128", params: &[N] },
     GenDef {
         name: "vgroove",
-        help: "V-shaped grooves along y, cut into a flat top; keys: n=128, period=16 (samples), depth=4",
+        help: "symmetric V grooves along y (a pure V, no flat land); keys: n=128, period=16 (samples), depth=4",
         params: &[N, p("period", 16.0, Rule::Period), p("depth", 4.0, Rule::NonNeg)],
     },
     GenDef {

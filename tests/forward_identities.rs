@@ -239,10 +239,10 @@ fn av_worst(hf: &Heightfield, s: usize, max_theta: f64) -> (f64, (f64, f64)) {
     worst
 }
 
-/// `a_v(w) = A_base cos(theta)` within 1e-3 for generator `spec`, directions up to `max_theta`.
-/// The visibility of each sample point is meant to be exact; the only legitimate error is the
-/// point sampling of the shadow boundaries inside facets, which shrinks with `s`. We use the
-/// smallest `s` in 2..=4 that meets the tolerance and print it.
+/// `a_v(w) = A_base cos(theta)` within 1e-3 for generator `spec`, directions up to `max_theta`,
+/// with `a_v` as the shadow march sees it: the share of first hits of the view rays that also pass
+/// the march towards the viewer (`ExactEvaluator::visible_projected_area`). Both codes are exact,
+/// so any miss is a bug in one of them; the smallest `s` in 2..=4 that meets it is printed.
 fn check_av(spec: &str, max_theta: f64) {
     let hf = parse_generator(spec).unwrap().build().unwrap();
     let mut log = Vec::new();
@@ -271,26 +271,18 @@ macro_rules! av_tests {
     )*};
 }
 
-const AV_IGNORE: &str = "a_v misses 1e-3 at theta 75-89 deg even at s=4 (at s=4, theta <= 89: \
-     vgroove 1.2e-1, sine 3.6e-2, ugroove 5.0e-1, bricks 2.6e-1, bumps 1.4e-2, dimples 8.2e-3, \
-     pyramids 1.1e-2, weave 4.6e-3, fbm 1.2e-2, texture 4.1e-2). Visibility per point agrees with a \
-     brute-force march; the error is the s x s point sampling of each facet: at grazing angles the \
-     visible part of a steep facet is a sliver thinner than the point spacing (ugroove at 89 deg: \
-     the lit 0.14-unit rim of its near-vertical wall carries half of a_v and no sample sees it). \
-     Needs analytic clipping of facets by the shadow boundary, or adaptive refinement";
-
 av_tests! {
     av_identity_flat => "flat:n=16";
-    #[ignore = "a_v misses 1e-3 at 75-89 deg even at s=4: point-sampled facet visibility misses thin visible slivers at grazing angles; see AV_IGNORE"] av_identity_vgroove => "vgroove:n=32";
-    #[ignore = "a_v misses 1e-3 at 75-89 deg even at s=4: point-sampled facet visibility misses thin visible slivers at grazing angles; see AV_IGNORE"] av_identity_sine => "sine:n=32";
-    #[ignore = "a_v misses 1e-3 at 75-89 deg even at s=4: point-sampled facet visibility misses thin visible slivers at grazing angles; see AV_IGNORE"] av_identity_ugroove => "ugroove:n=32";
-    #[ignore = "a_v misses 1e-3 at 75-89 deg even at s=4: point-sampled facet visibility misses thin visible slivers at grazing angles; see AV_IGNORE"] av_identity_bricks => "bricks:n=32";
-    #[ignore = "a_v misses 1e-3 at 75-89 deg even at s=4: point-sampled facet visibility misses thin visible slivers at grazing angles; see AV_IGNORE"] av_identity_bumps => "bumps:n=32";
-    #[ignore = "a_v misses 1e-3 at 75-89 deg even at s=4: point-sampled facet visibility misses thin visible slivers at grazing angles; see AV_IGNORE"] av_identity_dimples => "dimples:n=32";
-    #[ignore = "a_v misses 1e-3 at 75-89 deg even at s=4: point-sampled facet visibility misses thin visible slivers at grazing angles; see AV_IGNORE"] av_identity_pyramids => "pyramids:n=32";
-    #[ignore = "a_v misses 1e-3 at 75-89 deg even at s=4: point-sampled facet visibility misses thin visible slivers at grazing angles; see AV_IGNORE"] av_identity_weave => "weave:n=32";
-    #[ignore = "a_v misses 1e-3 at 75-89 deg even at s=4: point-sampled facet visibility misses thin visible slivers at grazing angles; see AV_IGNORE"] av_identity_fbm => "fbm:n=32";
-    #[ignore = "a_v misses 1e-3 at 75-89 deg even at s=4: point-sampled facet visibility misses thin visible slivers at grazing angles; see AV_IGNORE"] av_identity_texture => "texture:n=32";
+    av_identity_vgroove => "vgroove:n=32";
+    av_identity_sine => "sine:n=32";
+    av_identity_ugroove => "ugroove:n=32";
+    av_identity_bricks => "bricks:n=32";
+    av_identity_bumps => "bumps:n=32";
+    av_identity_dimples => "dimples:n=32";
+    av_identity_pyramids => "pyramids:n=32";
+    av_identity_weave => "weave:n=32";
+    av_identity_fbm => "fbm:n=32";
+    av_identity_texture => "texture:n=32";
 }
 
 /// Sharp form of the a_v identity: where no direction is steep enough for any shadowing (the
@@ -395,7 +387,6 @@ fn visibility_matches_brute_force_in_every_quadrant() {
 #[test]
 #[ignore = "diagnostic table, prints only"]
 fn av_identity_error_table() {
-    let _ = AV_IGNORE;
     for spec in generator_specs() {
         let hf = parse_generator(spec).unwrap().build().unwrap();
         for s in [2, 4] {
