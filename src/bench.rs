@@ -209,8 +209,8 @@ pub fn accuracy(cases: usize, seed: u64) -> Result<String> {
         )
     };
     Ok(format!(
-        "Fast vs exact evaluator (exact: 4 points per facet): relative RMS error over the 490 default \
-         pairs, {cases} random cases, seed {seed}\n\n\
+        "Fast vs exact evaluator (exact: 2×2 view rays per cell from both ends): relative RMS error over \
+         the 490 default pairs, {cases} random cases, seed {seed}\n\n\
          | pairs | median | 90th percentile | max | cases ≤ 3 % |\n|---|---|---|---|---|\n{}{}\n\
          | case | geometry | material | all pairs | theta ≤ 85° |\n|---|---|---|---|---|\n{rows}",
         summary("all 490 (theta to 89°)", &errs),

@@ -14,12 +14,13 @@
 //!   foreshortening that favours normals facing `wo` at grazing angles, both move the lobe);
 //! * `a_v(wo)` comes from the same table on the diagonal `a = b`, so a flat patch is exact.
 //!
-//! Visibility at the nodes is exact: for each of the `n_phi` azimuths the horizon slope of every
-//! facet centroid is marched once ([`crate::visibility`]), which answers every polar node of that
-//! azimuth at once. The `G` table is symmetric in `(a, b)` and only `a <= b` is stored. The sums
-//! over node pairs use a staircase trick: a point visible up to polar node `t_a` at azimuth `j_a`
-//! and `t_b` at `j_b` contributes to every `(i_a < t_a, i_b < t_b)`, so each azimuth pair is one
-//! 2-D histogram plus a suffix sum, not a loop over node pairs.
+//! The moments are integrated with view rays, as the exact evaluator does: for each node `b`,
+//! about 1024 stratified rays from `b` find the points `b` sees ([`Visibility::first_hit`]), and
+//! at each hit one horizon march per azimuth ([`Visibility::horizon`]) answers its visibility from
+//! every polar node of that azimuth at once. Sampling in the view's projection is what gets the
+//! thin visible rims of steep walls at grazing angles right (sampling facet points instead gave
+//! 22 % error on bricks, rays 2 %). The table is symmetric in `(a, b)`; only `a <= b` is stored,
+//! estimated from the rays of `b`, the more grazing node.
 
 use crate::dirgrid::DirGrid;
 use crate::frame::Vec3;
@@ -35,6 +36,8 @@ pub struct BvndfConfig {
     pub n_phi: usize,
     /// Number of normal clusters (lobes per direction pair).
     pub clusters: usize,
+    /// View rays per grid direction (rounded to a whole number of cells per ray).
+    pub rays: usize,
 }
 
 impl Default for BvndfConfig {
@@ -43,6 +46,7 @@ impl Default for BvndfConfig {
             n_theta: 10,
             n_phi: 16,
             clusters: 16,
+            rays: 1024,
         }
     }
 }
@@ -136,7 +140,12 @@ pub fn cluster_normals(normals: &[Vec3], weights: &[f64], k: usize) -> (Vec<u16>
 }
 
 impl CompactBvndf {
-    /// Build the compact BVNDF of `hf`.
+    /// Build the compact BVNDF of `hf`. For every node `b`, stratified rays arriving from `b`
+    /// (about [`BvndfConfig::rays`] of them) find the surface points `b` sees, each standing for
+    /// the area `(A_base cos theta_b / N) / (n·w_b)`; at each hit the horizon of every azimuth
+    /// gives its visibility from every node `a` at once. Thin visible rims of steep walls at
+    /// grazing angles get rays in proportion to their projected area, which sampling the surface
+    /// itself misses. The entry `(a <= b)` is estimated from the rays of `b`, the more grazing.
     pub fn build(hf: &Heightfield, cfg: &BvndfConfig) -> Self {
         let grid = DirGrid::new(cfg.n_theta, cfg.n_phi);
         let facets = hf.facets();
@@ -147,8 +156,6 @@ impl CompactBvndf {
         let kc = centres.len();
         let nt = grid.thetas.len();
         let np = grid.n_phi;
-
-        // Polar thresholds: visible at node i of azimuth j iff cot(theta_i) > H_j.
         let cots: Vec<f64> = grid
             .thetas
             .iter()
@@ -166,100 +173,71 @@ impl CompactBvndf {
         let azimuths: Vec<(f64, f64)> = (0..np)
             .map(|j| (grid.phi(j).cos(), grid.phi(j).sin()))
             .collect();
-        // t[p * np + j] = number of polar nodes from which point p is visible at azimuth j.
-        let t: Vec<u8> = facets
-            .par_iter()
-            .flat_map_iter(|f| {
-                let c = (f.v[0] + f.v[1] + f.v[2]) * (1.0 / 3.0);
-                let vis = &vis;
-                let cots = &cots;
-                azimuths.iter().map(move |&(dx, dy)| {
-                    let hzn = vis.horizon(c.x, c.y, c.z, dx, dy, floor, stop);
-                    cots.iter().take_while(|&&ct| ct >= hzn).count() as u8
-                })
-            })
-            .collect();
-
-        // Per azimuth pair: 2-D histogram over (t_a, t_b) per cluster, then suffix sums.
-        let jpairs: Vec<(usize, usize)> = (0..np)
-            .flat_map(|ja| (ja..np).map(move |jb| (ja, jb)))
-            .collect();
-        let side = nt + 1;
-        let blocks: Vec<((usize, usize), Vec<[f64; STRIDE]>)> = jpairs
-            .par_iter()
-            .map(|&(ja, jb)| {
-                let mut hist = vec![[0.0f64; STRIDE]; kc * side * side];
-                for (p, f) in facets.iter().enumerate() {
-                    let ta = t[p * np + ja] as usize;
-                    let tb = t[p * np + jb] as usize;
-                    if ta == 0 || tb == 0 {
-                        continue;
-                    }
-                    let a = areas[p];
-                    let n = f.n;
-                    let h = &mut hist[(assign[p] as usize * side + ta) * side + tb];
-                    let m = [
-                        n.x,
-                        n.y,
-                        n.z,
-                        n.x * n.x,
-                        n.y * n.y,
-                        n.z * n.z,
-                        n.x * n.y,
-                        n.x * n.z,
-                        n.y * n.z,
-                    ];
-                    for q in 0..STRIDE {
-                        h[q] += a * m[q];
-                    }
-                }
-                // suffix sums: S[ia][ib] = Σ_{ta >= ia, tb >= ib} hist  (then node i uses S[i+1])
-                for c in 0..kc {
-                    let base = c * side * side;
-                    for ia in (0..side).rev() {
-                        for ib in (0..side).rev() {
-                            let mut v = hist[base + ia * side + ib];
-                            if ia + 1 < side {
-                                let o = hist[base + (ia + 1) * side + ib];
+        let step = ((hf.base_area() / cfg.rays.max(1) as f64).sqrt().round() as usize).max(1);
+        let (nx, ny) = (hf.width().div_ceil(step), hf.height().div_ceil(step));
+        let n_rays = (nx * ny) as f64;
+        let jitter = |k: usize, g: f64| (0.5 + k as f64 * g).fract();
+        let n_nodes = grid.len();
+        // Column b: entries for a <= b, [a][cluster][STRIDE].
+        let columns: Vec<Vec<[f64; STRIDE]>> = (0..n_nodes)
+            .into_par_iter()
+            .map(|b| {
+                let wb = grid.direction(b);
+                let mut col = vec![[0.0f64; STRIDE]; (b + 1) * kc];
+                let per_ray = wb.z / n_rays; // projected area per ray, in units of A_base
+                let mut t = vec![0usize; np];
+                for j in 0..ny {
+                    for i in 0..nx {
+                        let u = (i as f64 + jitter(j, 0.618_033_988_749_895)) * step as f64;
+                        let v = (j as f64 + jitter(i, 0.414_213_562_373_095)) * step as f64;
+                        let (p, f) = vis.first_hit(u, v, wb);
+                        let n = facets[f].n;
+                        let c = n.dot(wb);
+                        if c <= 1e-9 {
+                            continue;
+                        }
+                        let wgt = per_ray / c;
+                        for (jj, &(dx, dy)) in azimuths.iter().enumerate() {
+                            let h = vis.horizon(p.x, p.y, p.z, dx, dy, floor, stop);
+                            t[jj] = cots.iter().take_while(|&&ct| ct >= h).count();
+                        }
+                        let m = [
+                            n.x,
+                            n.y,
+                            n.z,
+                            n.x * n.x,
+                            n.y * n.y,
+                            n.z * n.z,
+                            n.x * n.y,
+                            n.x * n.z,
+                            n.y * n.z,
+                        ];
+                        let k = assign[f] as usize;
+                        for (ja, &ta) in t.iter().enumerate() {
+                            for ia in 0..ta {
+                                let a = grid.node(ia, ja);
+                                if a > b {
+                                    break;
+                                }
+                                let e = &mut col[a * kc + k];
                                 for q in 0..STRIDE {
-                                    v[q] += o[q];
+                                    e[q] += wgt * m[q];
                                 }
                             }
-                            if ib + 1 < side {
-                                let o = hist[base + ia * side + ib + 1];
-                                for q in 0..STRIDE {
-                                    v[q] += o[q];
-                                }
-                            }
-                            if ia + 1 < side && ib + 1 < side {
-                                let o = hist[base + (ia + 1) * side + ib + 1];
-                                for q in 0..STRIDE {
-                                    v[q] -= o[q];
-                                }
-                            }
-                            hist[base + ia * side + ib] = v;
                         }
                     }
                 }
-                ((ja, jb), hist)
+                col
             })
             .collect();
-
-        let n_nodes = grid.len();
         let n_pairs = n_nodes * (n_nodes + 1) / 2;
         let mut table = vec![0f32; n_pairs * kc * STRIDE];
-        for ((ja, jb), hist) in blocks {
-            for ia in 0..nt {
-                for ib in 0..nt {
-                    let a = grid.node(ia, ja);
-                    let b = grid.node(ib, jb);
-                    let pi = pair_index(a, b);
-                    for c in 0..kc {
-                        let v = hist[(c * side + ia + 1) * side + ib + 1];
-                        let dst = &mut table[(pi * kc + c) * STRIDE..(pi * kc + c + 1) * STRIDE];
-                        for q in 0..STRIDE {
-                            dst[q] = v[q] as f32;
-                        }
+        for (b, col) in columns.iter().enumerate() {
+            for a in 0..=b {
+                let pi = pair_index(a, b);
+                for c in 0..kc {
+                    for q in 0..STRIDE {
+                        table[(pi * kc + c) * STRIDE + q] = col[a * kc + c][q] as f32;
                     }
                 }
             }

@@ -23,39 +23,6 @@ use crate::visibility::Visibility;
 use rayon::prelude::*;
 use std::collections::HashMap;
 
-/// A stratified surface point with the facet it lies on.
-#[derive(Debug, Clone, Copy)]
-pub struct SurfacePoint {
-    pub p: Vec3,
-    pub facet: u32,
-}
-
-/// Surface points of a heightfield: `s²` per facet, contiguous per facet.
-pub fn surface_points(facets: &[Facet], s: usize) -> Vec<SurfacePoint> {
-    let s = s.max(1);
-    let inv = 1.0 / s as f64;
-    let mut out = Vec::with_capacity(facets.len() * s * s);
-    for (t, f) in facets.iter().enumerate() {
-        let [a, b, c] = f.v;
-        let (e1, e2) = (b - a, c - a);
-        let mut push = |u: f64, v: f64| {
-            out.push(SurfacePoint {
-                p: a + e1 * u + e2 * v,
-                facet: t as u32,
-            })
-        };
-        for i in 0..s {
-            for j in 0..s - i {
-                push((i as f64 + 1.0 / 3.0) * inv, (j as f64 + 1.0 / 3.0) * inv);
-                if i + j + 1 < s {
-                    push((i as f64 + 2.0 / 3.0) * inv, (j as f64 + 2.0 / 3.0) * inv);
-                }
-            }
-        }
-    }
-    out
-}
-
 /// The exact evaluator for one heightfield.
 pub struct ExactEvaluator<'a> {
     vis: Visibility<'a>,
@@ -236,24 +203,6 @@ mod tests {
     use super::*;
     use crate::frame::dir_from_deg;
     use crate::material::parse_material;
-
-    #[test]
-    fn point_counts_and_weights() {
-        let hf = Heightfield::flat(3, 3);
-        let f = hf.facets();
-        for s in 1..5 {
-            let pts = surface_points(&f, s);
-            assert_eq!(pts.len(), f.len() * s * s);
-            // every point lies inside its facet's xy footprint
-            for sp in &pts {
-                let fa = &f[sp.facet as usize];
-                let (mnx, mxx) =
-                    fa.v.iter()
-                        .fold((9.0f64, -9.0f64), |(a, b), v| (a.min(v.x), b.max(v.x)));
-                assert!(sp.p.x > mnx && sp.p.x < mxx);
-            }
-        }
-    }
 
     #[test]
     fn flat_patch_is_brdf_times_cosine() {

@@ -32,6 +32,52 @@ pub struct Facet {
     pub v: [Vec3; 3],
 }
 
+impl Facet {
+    /// The centroids of the `s × s` subdivision of the triangle into congruent triangles: `s²`
+    /// points, each standing for `area / s²`.
+    pub fn stratified_points(&self, s: usize) -> Vec<Vec3> {
+        let s = s.max(1);
+        let inv = 1.0 / s as f64;
+        let [a, b, c] = self.v;
+        let (e1, e2) = (b - a, c - a);
+        let mut out = Vec::with_capacity(s * s);
+        for i in 0..s {
+            for j in 0..s - i {
+                out.push(
+                    a + e1 * ((i as f64 + 1.0 / 3.0) * inv) + e2 * ((j as f64 + 1.0 / 3.0) * inv),
+                );
+                if i + j + 1 < s {
+                    out.push(
+                        a + e1 * ((i as f64 + 2.0 / 3.0) * inv)
+                            + e2 * ((j as f64 + 2.0 / 3.0) * inv),
+                    );
+                }
+            }
+        }
+        out
+    }
+}
+
+/// A point on the surface with the index of its facet.
+#[derive(Debug, Clone, Copy)]
+pub struct SurfacePoint {
+    pub p: Vec3,
+    pub facet: u32,
+}
+
+/// `s²` stratified points per facet ([`Facet::stratified_points`]), contiguous per facet.
+pub fn surface_points(facets: &[Facet], s: usize) -> Vec<SurfacePoint> {
+    facets
+        .iter()
+        .enumerate()
+        .flat_map(|(t, f)| {
+            f.stratified_points(s)
+                .into_iter()
+                .map(move |p| SurfacePoint { p, facet: t as u32 })
+        })
+        .collect()
+}
+
 impl Heightfield {
     /// A heightfield from row-major samples `z[y * w + x]` in grid units. Rejects empty,
     /// mis-sized or non-finite data with a message naming `name`.
@@ -245,5 +291,23 @@ mod tests {
         // point (x=1, y=0) goes to (x'=0, y'=1)
         assert_eq!(r.at(0, 1), hf.at(1, 0));
         assert_eq!(hf.rotated_quarter(4), hf);
+    }
+
+    #[test]
+    fn point_counts_and_weights() {
+        let hf = Heightfield::flat(3, 3);
+        let f = hf.facets();
+        for s in 1..5 {
+            let pts = surface_points(&f, s);
+            assert_eq!(pts.len(), f.len() * s * s);
+            // every point lies inside its facet's xy footprint
+            for sp in &pts {
+                let fa = &f[sp.facet as usize];
+                let (mnx, mxx) =
+                    fa.v.iter()
+                        .fold((9.0f64, -9.0f64), |(a, b), v| (a.min(v.x), b.max(v.x)));
+                assert!(sp.p.x > mnx && sp.p.x < mxx);
+            }
+        }
     }
 }

@@ -6,11 +6,11 @@
 //! 3. the exact evaluator is reciprocal: `fbar(wi, wo)/cos(theta_i) == fbar(wo, wi)/cos(theta_o)`.
 
 use biscale::bvndf::{BvndfConfig, CompactBvndf};
-use biscale::exact::surface_points;
 use biscale::exact::ExactEvaluator;
 use biscale::fast;
 use biscale::frame::{dir_from_deg, DirPair, Vec3};
 use biscale::generators::parse_generator;
+use biscale::heightfield::surface_points;
 use biscale::heightfield::Heightfield;
 use biscale::material::{parse_material, Material, MerlBrdf};
 use biscale::prefilter::{PrefilterConfig, Prefiltered};
