@@ -63,6 +63,9 @@ pub struct CompactBvndf {
     pub table: Vec<f32>,
     /// The cluster centres (unit mean normals of each whole cluster).
     pub centres: Vec<Vec3>,
+    /// Clusters whose facets all share one normal (planar walls, groove faces): their lobe is a
+    /// delta at the centre, whatever rounding the `f32` moments carry.
+    pub planar: Vec<bool>,
 }
 
 #[inline]
@@ -242,17 +245,24 @@ impl CompactBvndf {
                 }
             }
         }
+        let mut planar = vec![true; kc];
+        for (n, &k) in normals.iter().zip(&assign) {
+            if n.dot(centres[k as usize]) < 1.0 - 1e-12 {
+                planar[k as usize] = false;
+            }
+        }
         CompactBvndf {
             grid,
             clusters: kc,
             table,
             centres,
+            planar,
         }
     }
 
     /// Bytes of the stored representation (the table and the centres).
     pub fn bytes(&self) -> usize {
-        self.table.len() * 4 + self.centres.len() * 24
+        self.table.len() * 4 + self.centres.len() * 25
     }
 
     /// The lobes of `gamma(·; wi, wo)`: `(weight, vMF)` per cluster, weights summing to at most 1.
@@ -293,7 +303,7 @@ impl CompactBvndf {
         if !(diag > 0.0) {
             return;
         }
-        for a in acc.iter() {
+        for (c, a) in acc.iter().enumerate() {
             let mass = wo.x * a[0] + wo.y * a[1] + wo.z * a[2];
             if !(mass > 0.0) {
                 continue;
@@ -308,11 +318,12 @@ impl CompactBvndf {
             if !(len > 0.0) {
                 continue;
             }
-            let r = (len / mass).min(1.0);
-            out.push((
-                mass / diag,
-                Vmf::new(kappa_from_resultant(r), m * (1.0 / len)),
-            ));
+            let lobe = if self.planar[c] {
+                Vmf::new(crate::vmf::KAPPA_MAX, self.centres[c])
+            } else {
+                Vmf::new(kappa_from_resultant((len / mass).min(1.0)), m * (1.0 / len))
+            };
+            out.push((mass / diag, lobe));
         }
     }
 }
