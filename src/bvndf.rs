@@ -12,7 +12,10 @@
 //! * its shape is the vMF whose mean and mean resultant length match the `(n·wo)`-weighted mean
 //!   normal `G2 wo / (wo·G1)` (moment matching: visibility that selects part of a cluster, and the
 //!   foreshortening that favours normals facing `wo` at grazing angles, both move the lobe);
-//! * `a_v(wo)` comes from the same table on the diagonal `a = b`, so a flat patch is exact.
+//! * `a_v(wo)` comes from the same table on the diagonal `a = b`, so a flat patch is exact;
+//! * a planar cluster (one normal: groove faces, walls) takes its analytic projected area
+//!   `A_k (n·wo)+` times its jointly visible fraction, interpolated only over the nodes it faces,
+//!   so a face turning towards `wo` between two nodes is not lost to the node it turns away from.
 //!
 //! The moments are integrated with view rays, as the exact evaluator does: for each node `b`,
 //! about 1024 stratified rays from `b` find the points `b` sees ([`Visibility::first_hit`]), and
@@ -66,6 +69,8 @@ pub struct CompactBvndf {
     /// Clusters whose facets all share one normal (planar walls, groove faces): their lobe is a
     /// delta at the centre, whatever rounding the `f32` moments carry.
     pub planar: Vec<bool>,
+    /// Area of each cluster in units of `A_base`.
+    pub cluster_area: Vec<f64>,
 }
 
 #[inline]
@@ -251,12 +256,17 @@ impl CompactBvndf {
                 planar[k as usize] = false;
             }
         }
+        let mut cluster_area = vec![0.0; kc];
+        for (a, &k) in areas.iter().zip(&assign) {
+            cluster_area[k as usize] += a;
+        }
         CompactBvndf {
             grid,
             clusters: kc,
             table,
             centres,
             planar,
+            cluster_area,
         }
     }
 
@@ -304,6 +314,41 @@ impl CompactBvndf {
             return;
         }
         for (c, a) in acc.iter().enumerate() {
+            if self.planar[c] {
+                // A planar cluster's share is its analytic projected area times its jointly
+                // visible fraction, interpolated only over the nodes where it faces both
+                // directions (a facet facing a node carries no information about shadowing).
+                let n = self.centres[c];
+                let (ci, co) = (n.dot(wi), n.dot(wo));
+                if ci <= 0.0 || co <= 0.0 {
+                    continue;
+                }
+                let area = self.cluster_area[c];
+                let (mut rs, mut ws) = (0.0, 0.0);
+                for &(b, vb) in &wb {
+                    let wbv = self.grid.direction(b);
+                    let cb = n.dot(wbv);
+                    if vb == 0.0 || cb <= 1e-9 {
+                        continue;
+                    }
+                    for &(na, ua) in &wa {
+                        if ua == 0.0 || n.dot(self.grid.direction(na)) <= 1e-9 {
+                            continue;
+                        }
+                        let e = &self.table[(pair_index(na, b) * kc + c) * STRIDE..];
+                        let g = wbv.x * e[0] as f64 + wbv.y * e[1] as f64 + wbv.z * e[2] as f64;
+                        rs += ua * vb * (g / (area * cb)).clamp(0.0, 1.0);
+                        ws += ua * vb;
+                    }
+                }
+                if ws > 0.0 {
+                    out.push((
+                        area * co * rs / ws / diag,
+                        Vmf::new(crate::vmf::KAPPA_MAX, n),
+                    ));
+                    continue;
+                }
+            }
             let mass = wo.x * a[0] + wo.y * a[1] + wo.z * a[2];
             if !(mass > 0.0) {
                 continue;
