@@ -194,6 +194,9 @@ impl CompactBvndf {
                 let mut col = vec![[0.0f64; STRIDE]; (b + 1) * kc];
                 let per_ray = wb.z / n_rays; // projected area per ray, in units of A_base
                 let mut t = vec![0usize; np];
+                // Column b only needs nodes a <= b, none more grazing than b's own polar node,
+                // so horizons below that node's slope need not be resolved (shorter marches).
+                let floor_b = cots[b / np].min(f64::MAX).max(floor);
                 for j in 0..ny {
                     for i in 0..nx {
                         let u = (i as f64 + jitter(j, 0.618_033_988_749_895)) * step as f64;
@@ -206,7 +209,7 @@ impl CompactBvndf {
                         }
                         let wgt = per_ray / c;
                         for (jj, &(dx, dy)) in azimuths.iter().enumerate() {
-                            let h = vis.horizon(p.x, p.y, p.z, dx, dy, floor, stop);
+                            let h = vis.horizon(p.x, p.y, p.z, dx, dy, floor_b, stop);
                             t[jj] = cots.iter().take_while(|&&ct| ct >= h).count();
                         }
                         let m = [
