@@ -119,6 +119,17 @@ fn signed_angles() -> Vec<f64> {
     v
 }
 
+/// The direction pairs of signed in-plane angles.
+fn in_plane_pairs(pairs: &[(f64, f64)]) -> Vec<DirPair> {
+    pairs
+        .iter()
+        .map(|&(i, o)| DirPair {
+            wi: inplane(i),
+            wo: inplane(o),
+        })
+        .collect()
+}
+
 fn lambert_pairs() -> Vec<(f64, f64)> {
     let a = signed_angles();
     let mut out = Vec::new();
@@ -138,13 +149,7 @@ fn lambert_errors(s: usize) -> (f64, (f64, f64), f64) {
     let mat = parse_material("lambert:albedo=0.8").unwrap();
     let ev = ExactEvaluator::new(&hf, s);
     let pairs = lambert_pairs();
-    let dp: Vec<DirPair> = pairs
-        .iter()
-        .map(|&(i, o)| DirPair {
-            wi: inplane(i),
-            wo: inplane(o),
-        })
-        .collect();
+    let dp = in_plane_pairs(&pairs);
     let got = ev.fbar(&mat, &dp);
     let mut worst = (0.0f64, (0.0, 0.0));
     let (mut num, mut den) = (0.0, 0.0);
@@ -268,13 +273,7 @@ fn fast_lambertian_vgroove_error_report() {
     let geo = CompactBvndf::build(&hf, &BvndfConfig::default());
     let pre = Prefiltered::build(&mat, &PrefilterConfig::default());
     let pairs = lambert_pairs();
-    let dp: Vec<DirPair> = pairs
-        .iter()
-        .map(|&(i, o)| DirPair {
-            wi: inplane(i),
-            wo: inplane(o),
-        })
-        .collect();
+    let dp = in_plane_pairs(&pairs);
     let got = fast::fbar(&geo, &pre, &dp);
     let mut errs: Vec<(f64, (f64, f64))> = Vec::new();
     let mut zero_bad = Vec::new();
