@@ -28,7 +28,7 @@
 use crate::dirgrid::DirGrid;
 use crate::frame::Vec3;
 use crate::heightfield::Heightfield;
-use crate::visibility::Visibility;
+use crate::visibility::{ray_lattice, Visibility};
 use crate::vmf::{kappa_from_resultant, Vmf};
 use rayon::prelude::*;
 
@@ -181,10 +181,8 @@ impl CompactBvndf {
         let azimuths: Vec<(f64, f64)> = (0..np)
             .map(|j| (grid.phi(j).cos(), grid.phi(j).sin()))
             .collect();
-        let step = ((hf.base_area() / cfg.rays.max(1) as f64).sqrt().round() as usize).max(1);
-        let (nx, ny) = (hf.width().div_ceil(step), hf.height().div_ceil(step));
-        let n_rays = (nx * ny) as f64;
-        let jitter = |k: usize, g: f64| (0.5 + k as f64 * g).fract();
+        let origins = ray_lattice(hf.width(), hf.height(), cfg.rays);
+        let n_rays = origins.len() as f64;
         let n_nodes = grid.len();
         // Column b: entries for a <= b, [a][cluster][STRIDE].
         let columns: Vec<Vec<[f64; STRIDE]>> = (0..n_nodes)
@@ -197,43 +195,39 @@ impl CompactBvndf {
                 // Column b only needs nodes a <= b, none more grazing than b's own polar node,
                 // so horizons below that node's slope need not be resolved (shorter marches).
                 let floor_b = cots[b / np].min(f64::MAX).max(floor);
-                for j in 0..ny {
-                    for i in 0..nx {
-                        let u = (i as f64 + jitter(j, 0.618_033_988_749_895)) * step as f64;
-                        let v = (j as f64 + jitter(i, 0.414_213_562_373_095)) * step as f64;
-                        let (p, f) = vis.first_hit(u, v, wb);
-                        let n = facets[f].n;
-                        let c = n.dot(wb);
-                        if c <= 1e-9 {
-                            continue;
-                        }
-                        let wgt = per_ray / c;
-                        for (jj, &(dx, dy)) in azimuths.iter().enumerate() {
-                            let h = vis.horizon(p.x, p.y, p.z, dx, dy, floor_b, stop);
-                            t[jj] = cots.iter().take_while(|&&ct| ct >= h).count();
-                        }
-                        let m = [
-                            n.x,
-                            n.y,
-                            n.z,
-                            n.x * n.x,
-                            n.y * n.y,
-                            n.z * n.z,
-                            n.x * n.y,
-                            n.x * n.z,
-                            n.y * n.z,
-                        ];
-                        let k = assign[f] as usize;
-                        for (ja, &ta) in t.iter().enumerate() {
-                            for ia in 0..ta {
-                                let a = grid.node(ia, ja);
-                                if a > b {
-                                    break;
-                                }
-                                let e = &mut col[a * kc + k];
-                                for q in 0..STRIDE {
-                                    e[q] += wgt * m[q];
-                                }
+                for &(u, v) in &origins {
+                    let (p, f) = vis.first_hit(u, v, wb);
+                    let n = facets[f].n;
+                    let c = n.dot(wb);
+                    if c <= 1e-9 {
+                        continue;
+                    }
+                    let wgt = per_ray / c;
+                    for (jj, &(dx, dy)) in azimuths.iter().enumerate() {
+                        let h = vis.horizon(p.x, p.y, p.z, dx, dy, floor_b, stop);
+                        t[jj] = cots.iter().take_while(|&&ct| ct >= h).count();
+                    }
+                    let m = [
+                        n.x,
+                        n.y,
+                        n.z,
+                        n.x * n.x,
+                        n.y * n.y,
+                        n.z * n.z,
+                        n.x * n.y,
+                        n.x * n.z,
+                        n.y * n.z,
+                    ];
+                    let k = assign[f] as usize;
+                    for (ja, &ta) in t.iter().enumerate() {
+                        for ia in 0..ta {
+                            let a = grid.node(ia, ja);
+                            if a > b {
+                                break;
+                            }
+                            let e = &mut col[a * kc + k];
+                            for q in 0..STRIDE {
+                                e[q] += wgt * m[q];
                             }
                         }
                     }

@@ -23,12 +23,18 @@ pub mod bvndf;
 pub mod dirgrid;
 pub mod exact;
 pub mod fast;
+pub mod gamma;
 pub mod prefilter;
 pub mod visibility;
 pub mod vmf;
 
+// Libraries: compression and representatives.
+pub mod lowrank;
+
 // Files and commands.
 pub mod atomic_write;
+// Fabrication: constraint profiles, millability, cost, export.
+pub mod fab;
 pub mod bench;
 pub mod forward;
 pub mod pairs;

@@ -326,6 +326,25 @@ impl<'a> Visibility<'a> {
     }
 }
 
+/// Base-plane origins `(u, v)` of about `rays` view rays over one `w × h` period: one per
+/// `step × step` block of cells, jittered by two irrational sequences so rows and columns do not
+/// line up with grooves. The compact BVNDF and the library's binned BVNDF sample views with it.
+pub fn ray_lattice(w: usize, h: usize, rays: usize) -> Vec<(f64, f64)> {
+    let step = (((w * h) as f64 / rays.max(1) as f64).sqrt().round() as usize).max(1);
+    let (nx, ny) = (w.div_ceil(step), h.div_ceil(step));
+    let jitter = |k: usize, g: f64| (0.5 + k as f64 * g).fract();
+    let mut out = Vec::with_capacity(nx * ny);
+    for j in 0..ny {
+        for i in 0..nx {
+            out.push((
+                (i as f64 + jitter(j, 0.618_033_988_749_895)) * step as f64,
+                (j as f64 + jitter(i, 0.414_213_562_373_095)) * step as f64,
+            ));
+        }
+    }
+    out
+}
+
 /// A walk through the grid cells crossed by the horizontal half-line `p + s d`, `s >= 0`, with
 /// unwrapped cell coordinates (for positions) and wrapped indices (for heights): a 2-D DDA.
 struct CellWalk {

@@ -1,0 +1,363 @@
+//! The library's linear form of a BVNDF: `gamma` (Eq. 3) binned on a grid of normals, at the
+//! library's fixed light directions × the view nodes of a [`DirGrid`] (paper Sec. 5.2, 4.1).
+//!
+//! For one light `l` and one view node `v`, `gamma(n; w_l, w_v)` is the distribution of the normals
+//! seen from `w_v` and lit from `w_l`, normalised by the visible projected area. With view rays
+//! sampled uniformly over the base in the view's projection, every ray stands for the same share
+//! `1/N` of `gamma` (the ray density already carries `(n·wo)/a_v`), so the binned column is
+//! `g[l][v][b] = (1/N) Σ_rays V(hit, w_l) β_b(n_hit)`, with `β_b` the bilinear weights of the hit
+//! normal on the normal grid. `fbar` is linear in it: for a material with prefiltered `F`,
+//!
+//! `fbar(w_l, wo) ≈ Σ_v ω_v(wo) Σ_b g[l][v][b] F(w_l, wo; kappa_b, n_b)`,
+//!
+//! where `ω_v` are the view grid's interpolation weights and `kappa_b` the width of a vMF matching
+//! the bilinear splat at node `b` (the binning blurs `gamma` by about half a grid step; `F` at that
+//! width integrates the material over the same blur, so mirror-like materials are not aliased).
+//! Because the map from column to `fbar` is linear, the library can compress the columns of all
+//! geometries with an SVD and pick representatives by CX (Eq. 11–12).
+//!
+//! The normal grid is the hemispherical octahedral map: `n ↦ (x, y) = (n_x, n_y) / (|n_x| + |n_y| +
+//! n_z)` (a diamond), rotated 45° to the square `[-1, 1]²`, with `G × G` nodes at the corners of
+//! `G - 1` cells.
+
+use crate::dirgrid::DirGrid;
+use crate::frame::{dir_from_deg, Vec3};
+use crate::heightfield::Heightfield;
+use crate::material::Material;
+use crate::pairs::light_directions;
+use crate::prefilter::Prefiltered;
+use crate::visibility::{ray_lattice, Visibility};
+use crate::vmf::Vmf;
+use rayon::prelude::*;
+
+/// `G × G` nodes of the hemispherical octahedral map.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NormalGrid {
+    pub g: usize,
+    dirs: Vec<Vec3>,
+    kappas: Vec<f64>,
+}
+
+impl NormalGrid {
+    pub fn new(g: usize) -> Self {
+        let g = g.max(3);
+        let coord = |i: usize| -1.0 + 2.0 * i as f64 / (g - 1) as f64;
+        let dir = |u: f64, v: f64| {
+            let (x, y) = (0.5 * (u + v), 0.5 * (u - v));
+            Vec3::new(x, y, (1.0 - x.abs() - y.abs()).max(0.0)).normalized()
+        };
+        let mut dirs = Vec::with_capacity(g * g);
+        let mut kappas = Vec::with_capacity(g * g);
+        for j in 0..g {
+            for i in 0..g {
+                let (u, v) = (coord(i), coord(j));
+                let n = dir(u, v);
+                // Angular step to the neighbours (one-sided at the border).
+                let h = 2.0 / (g - 1) as f64;
+                let mut step = 0.0;
+                let mut cnt = 0.0;
+                for (du, dv) in [(h, 0.0), (-h, 0.0), (0.0, h), (0.0, -h)] {
+                    let (uu, vv) = (u + du, v + dv);
+                    if uu.abs() <= 1.0 + 1e-12 && vv.abs() <= 1.0 + 1e-12 {
+                        step += n.dot(dir(uu, vv)).clamp(-1.0, 1.0).acos();
+                        cnt += 1.0;
+                    }
+                }
+                let step = (step / cnt).max(1e-3);
+                // A tent of half-width `step` has variance step²/6 per axis; match a vMF's 1/kappa.
+                kappas.push(6.0 / (step * step));
+                dirs.push(n);
+            }
+        }
+        NormalGrid { g, dirs, kappas }
+    }
+
+    pub fn len(&self) -> usize {
+        self.g * self.g
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.g == 0
+    }
+
+    pub fn direction(&self, b: usize) -> Vec3 {
+        self.dirs[b]
+    }
+
+    /// The vMF width standing for node `b`'s bilinear splat.
+    pub fn kappa(&self, b: usize) -> f64 {
+        self.kappas[b]
+    }
+
+    /// Bilinear weights of unit normal `n` (`n.z >= 0`) on the grid: four `(node, weight)`.
+    pub fn splat(&self, n: Vec3) -> [(usize, f64); 4] {
+        let s = n.x.abs() + n.y.abs() + n.z.max(0.0);
+        let (x, y) = if s > 0.0 {
+            (n.x / s, n.y / s)
+        } else {
+            (0.0, 0.0)
+        };
+        let (u, v) = (x + y, x - y);
+        let g1 = (self.g - 1) as f64;
+        let fu = ((u + 1.0) * 0.5 * g1).clamp(0.0, g1);
+        let fv = ((v + 1.0) * 0.5 * g1).clamp(0.0, g1);
+        let iu = (fu.floor() as usize).min(self.g - 2);
+        let iv = (fv.floor() as usize).min(self.g - 2);
+        let (au, av) = (fu - iu as f64, fv - iv as f64);
+        let at = |i: usize, j: usize| j * self.g + i;
+        [
+            (at(iu, iv), (1.0 - au) * (1.0 - av)),
+            (at(iu + 1, iv), au * (1.0 - av)),
+            (at(iu, iv + 1), (1.0 - au) * av),
+            (at(iu + 1, iv + 1), au * av),
+        ]
+    }
+}
+
+/// Where the binned `gamma` of every library geometry is sampled.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GammaLayout {
+    /// The fixed light directions (the 7 of [`light_directions`]).
+    pub lights: Vec<Vec3>,
+    pub views: DirGrid,
+    pub normals: NormalGrid,
+}
+
+impl GammaLayout {
+    pub fn new(n_theta: usize, n_phi: usize, normal_grid: usize) -> Self {
+        GammaLayout {
+            lights: light_directions()
+                .iter()
+                .map(|&(t, p)| dir_from_deg(t, p))
+                .collect(),
+            views: DirGrid::new(n_theta, n_phi),
+            normals: NormalGrid::new(normal_grid),
+        }
+    }
+
+    /// Length of one geometry's column: lights × view nodes × normal nodes.
+    pub fn rows(&self) -> usize {
+        self.lights.len() * self.views.len() * self.normals.len()
+    }
+
+    /// The index of `wi` among the fixed lights, if it is one (to 1e-9).
+    pub fn light_index(&self, wi: Vec3) -> Option<usize> {
+        self.lights
+            .iter()
+            .position(|l| (l.x - wi.x).abs() + (l.y - wi.y).abs() + (l.z - wi.z).abs() < 1e-9)
+    }
+
+    /// The binned `gamma` of `hf`, `[light][view node][normal node]`, from about `rays` view rays
+    /// per view node (a jittered lattice over the period, as in the compact BVNDF).
+    pub fn column(&self, hf: &Heightfield, rays: usize) -> Vec<f32> {
+        let vis = Visibility::new(hf);
+        let facets = hf.facets();
+        let origins = ray_lattice(hf.width(), hf.height(), rays);
+        let inv = 1.0 / origins.len().max(1) as f64;
+        let (nl, nv, nb) = (self.lights.len(), self.views.len(), self.normals.len());
+        // One block per view node: [light][normal].
+        let blocks: Vec<Vec<f64>> = (0..nv)
+            .into_par_iter()
+            .map(|v| {
+                let wv = self.views.direction(v);
+                let mut acc = vec![0.0f64; nl * nb];
+                for &(u, w) in &origins {
+                    let (p, f) = vis.first_hit(u, w, wv);
+                    let n = facets[f].n;
+                    if n.dot(wv) <= 1e-9 {
+                        continue;
+                    }
+                    let sp = self.normals.splat(n);
+                    for (l, wl) in self.lights.iter().enumerate() {
+                        if n.dot(*wl) <= 0.0 || !vis.visible(p.x, p.y, p.z, *wl) {
+                            continue;
+                        }
+                        let row = &mut acc[l * nb..(l + 1) * nb];
+                        for &(b, wb) in &sp {
+                            row[b] += wb * inv;
+                        }
+                    }
+                }
+                acc
+            })
+            .collect();
+        let mut out = vec![0f32; self.rows()];
+        for (v, blk) in blocks.iter().enumerate() {
+            for l in 0..nl {
+                let dst = (l * nv + v) * nb;
+                for b in 0..nb {
+                    out[dst + b] = blk[l * nb + b] as f32;
+                }
+            }
+        }
+        out
+    }
+}
+
+/// The linear map from a geometry column to `fbar` at a set of pairs for one material: per pair,
+/// the light index, up to four `(view node, weight)` and the material's `F` at every normal node.
+#[derive(Debug, Clone)]
+pub struct Response {
+    pub pairs: Vec<PairResponse>,
+    nb: usize,
+    nv: usize,
+}
+
+#[derive(Debug, Clone)]
+pub struct PairResponse {
+    pub light: usize,
+    pub views: [(usize, f64); 4],
+    pub f: Vec<f32>,
+}
+
+impl Response {
+    /// The response of `mat` at `pairs` given as `(light index, wo)`: the material at every normal
+    /// node, `f_r(n_b) (n_b·wi)+`, so that `fbar` is the bilinear interpolation of the integrand
+    /// between nodes integrated against the binned `gamma` (second-order accurate where the
+    /// material is wider than a grid step; narrower lobes alias, which the candidates'
+    /// re-evaluation corrects). With `blur`, `F` of a vMF of the node's splat width instead
+    /// (smoother for mirror-like materials, but it widens every lobe).
+    pub fn new(
+        layout: &GammaLayout,
+        mat: &Material,
+        blur: Option<&Prefiltered>,
+        pairs: &[(usize, Vec3)],
+    ) -> Self {
+        let nb = layout.normals.len();
+        let resp = pairs
+            .par_iter()
+            .map(|&(l, wo)| {
+                let wi = layout.lights[l];
+                let f = (0..nb)
+                    .map(|b| {
+                        let n = layout.normals.direction(b);
+                        let v = match blur {
+                            Some(pf) => pf.eval(wi, wo, &Vmf::new(layout.normals.kappa(b), n)),
+                            None => {
+                                let c = n.dot(wi);
+                                if c > 0.0 && n.dot(wo) > 0.0 {
+                                    mat.eval(n, wi, wo) * c
+                                } else {
+                                    0.0
+                                }
+                            }
+                        };
+                        if v.is_finite() {
+                            v as f32
+                        } else {
+                            0.0
+                        }
+                    })
+                    .collect();
+                PairResponse {
+                    light: l,
+                    views: layout.views.weights(wo),
+                    f,
+                }
+            })
+            .collect();
+        Response {
+            pairs: resp,
+            nb,
+            nv: layout.views.len(),
+        }
+    }
+
+    /// `fbar` at every pair for one geometry column (`f32` or any element convertible to `f64`).
+    pub fn apply<T: Copy + Into<f64>>(&self, col: &[T]) -> Vec<f64> {
+        self.pairs
+            .iter()
+            .map(|p| {
+                let mut s = 0.0;
+                for &(v, w) in &p.views {
+                    if w == 0.0 {
+                        continue;
+                    }
+                    let row = &col[(p.light * self.nv + v) * self.nb..][..self.nb];
+                    let mut d = 0.0;
+                    for (g, f) in row.iter().zip(&p.f) {
+                        d += (*g).into() * *f as f64;
+                    }
+                    s += w * d;
+                }
+                s.max(0.0)
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::exact::ExactEvaluator;
+    use crate::frame::DirPair;
+    use crate::generators::parse_generator;
+    use crate::material::parse_material;
+    use crate::prefilter::PrefilterConfig;
+
+    #[test]
+    fn splat_weights_sum_to_one_and_hit_nodes_exactly() {
+        let ng = NormalGrid::new(12);
+        for b in [0, 5, 66, 143] {
+            let n = ng.direction(b);
+            let sp = ng.splat(n);
+            let s: f64 = sp.iter().map(|x| x.1).sum();
+            assert!((s - 1.0).abs() < 1e-12);
+            let top = sp.iter().max_by(|a, b| a.1.total_cmp(&b.1)).unwrap();
+            assert_eq!(top.0, b);
+            assert!(top.1 > 1.0 - 1e-9, "node {b}: {sp:?}");
+        }
+    }
+
+    #[test]
+    fn flat_patch_column_is_the_visible_share_and_fbar_is_exact() {
+        let lay = GammaLayout::new(6, 8, 9);
+        let hf = Heightfield::flat(16, 16);
+        let col = lay.column(&hf, 64);
+        // Every view node of every light: all mass at the pole node, total 1.
+        let nb = lay.normals.len();
+        let pole = lay.normals.splat(Vec3::Z)[0].0;
+        for blk in col.chunks(nb) {
+            assert!((blk[pole] - 1.0).abs() < 1e-6);
+        }
+        let mat = parse_material("ggx:alpha=0.3+lambert:albedo=0.2").unwrap();
+        let pf = Prefiltered::build(&mat, &PrefilterConfig::default());
+        let wo = dir_from_deg(40.0, 200.0);
+        let r = Response::new(&lay, &mat, Some(&pf), &[(2, wo)]);
+        let got = r.apply(&col)[0];
+        let wi = lay.lights[2];
+        let want = mat.eval(Vec3::Z, wi, wo) * wi.z;
+        // The pole node's kappa blurs the flat normal by about half a grid step.
+        assert!((got - want).abs() < 0.05 * want, "{got} vs {want}");
+    }
+
+    #[test]
+    fn binned_gamma_tracks_the_exact_evaluator_on_rough_geometry() {
+        let lay = GammaLayout::new(10, 16, 20);
+        let hf = parse_generator("bumps:n=48,count=6,radius=8,height=3,seed=2")
+            .unwrap()
+            .build()
+            .unwrap();
+        let col = lay.column(&hf, 1024);
+        let mat = parse_material("ggx:alpha=0.4+lambert:albedo=0.1").unwrap();
+        let pairs: Vec<(usize, Vec3)> = (0..7)
+            .flat_map(|l| {
+                [(30.0, 10.0), (55.0, 130.0), (70.0, 250.0)]
+                    .into_iter()
+                    .map(move |(t, p)| (l, dir_from_deg(t, p)))
+            })
+            .collect();
+        let got = Response::new(&lay, &mat, None, &pairs).apply(&col);
+        let ex = ExactEvaluator::new(&hf, 3);
+        let dp: Vec<DirPair> = pairs
+            .iter()
+            .map(|&(l, wo)| DirPair {
+                wi: lay.lights[l],
+                wo,
+            })
+            .collect();
+        let want = ex.fbar(&mat, &dp);
+        let rel = crate::bench::relative_rms(&got, &want);
+        assert!(rel < 0.05, "binned gamma vs exact: {rel}");
+    }
+}
