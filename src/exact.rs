@@ -74,9 +74,10 @@ impl<'a> ExactEvaluator<'a> {
         hits
     }
 
-    /// `Σ_t f_r(n_t) (n_t·wi)` over the hits lit from `wi`, divided by the ray count.
-    fn shade(&self, mat: &Material, hits: &[(u32, Vec3)], wi: Vec3, wo: Vec3) -> f64 {
-        let mut sum = 0.0;
+    /// `Σ_t f_r(n_t) (n_t·wi)` over the hits lit from `wi`, divided by the ray count, for every
+    /// material at once (the shadow marches are shared).
+    fn shade(&self, mats: &[&Material], hits: &[(u32, Vec3)], wi: Vec3, wo: Vec3) -> Vec<f64> {
+        let mut sum = vec![0.0; mats.len()];
         let mut k = 0;
         while k < hits.len() {
             let t = hits[k].0;
@@ -92,12 +93,15 @@ impl<'a> ExactEvaluator<'a> {
                     .filter(|(_, p)| self.vis.visible(p.x, p.y, p.z, wi))
                     .count();
                 if lit > 0 {
-                    sum += lit as f64 * ci * mat.eval(f.n, wi, wo);
+                    for (s, m) in sum.iter_mut().zip(mats) {
+                        *s += lit as f64 * ci * m.eval(f.n, wi, wo);
+                    }
                 }
             }
             k = end;
         }
-        sum / hits.len().max(1) as f64
+        let inv = 1.0 / hits.len().max(1) as f64;
+        sum.into_iter().map(|s| s * inv).collect()
     }
 
     pub fn facets(&self) -> &[Facet] {
@@ -129,25 +133,35 @@ impl<'a> ExactEvaluator<'a> {
     /// are averaged: half the variance where few rays see a lit area (both directions grazing),
     /// and a result reciprocal by construction. [`Self::fbar_one_sided`] gives either estimate.
     pub fn fbar(&self, mat: &Material, pairs: &[DirPair]) -> Vec<f64> {
-        let a = self.fbar_one_sided(mat, pairs);
+        self.fbar_many(&[mat], pairs).pop().unwrap_or_default()
+    }
+
+    /// [`Self::fbar`] for several materials on the same rays and shadow marches: `[material][pair]`.
+    pub fn fbar_many(&self, mats: &[&Material], pairs: &[DirPair]) -> Vec<Vec<f64>> {
+        let a = self.fbar_one_sided_many(mats, pairs);
         let swapped: Vec<DirPair> = pairs
             .iter()
             .map(|p| DirPair { wi: p.wo, wo: p.wi })
             .collect();
-        let b = self.fbar_one_sided(mat, &swapped);
-        pairs
-            .iter()
-            .zip(a.iter().zip(&b))
-            .map(|(p, (x, y))| {
-                if p.wi.z <= 0.0 || p.wo.z <= 0.0 {
-                    return 0.0;
-                }
-                let v = 0.5 * (x + y * p.wi.z / p.wo.z);
-                if v.is_finite() {
-                    v
-                } else {
-                    0.0
-                }
+        let b = self.fbar_one_sided_many(mats, &swapped);
+        a.iter()
+            .zip(&b)
+            .map(|(a, b)| {
+                pairs
+                    .iter()
+                    .zip(a.iter().zip(b))
+                    .map(|(p, (x, y))| {
+                        if p.wi.z <= 0.0 || p.wo.z <= 0.0 {
+                            return 0.0;
+                        }
+                        let v = 0.5 * (x + y * p.wi.z / p.wo.z);
+                        if v.is_finite() {
+                            v
+                        } else {
+                            0.0
+                        }
+                    })
+                    .collect()
             })
             .collect()
     }
@@ -155,6 +169,13 @@ impl<'a> ExactEvaluator<'a> {
     /// The one-sided estimate of `fbar`: rays from `wo` only, shaded towards `wi`. Pairs sharing
     /// a view direction share its rays.
     pub fn fbar_one_sided(&self, mat: &Material, pairs: &[DirPair]) -> Vec<f64> {
+        self.fbar_one_sided_many(&[mat], pairs)
+            .pop()
+            .unwrap_or_default()
+    }
+
+    /// [`Self::fbar_one_sided`] for several materials: `[material][pair]`.
+    pub fn fbar_one_sided_many(&self, mats: &[&Material], pairs: &[DirPair]) -> Vec<Vec<f64>> {
         // Group the pairs by view direction.
         let mut groups: HashMap<[u64; 3], Vec<usize>> = HashMap::new();
         let mut order: Vec<[u64; 3]> = Vec::new();
@@ -168,31 +189,38 @@ impl<'a> ExactEvaluator<'a> {
                 })
                 .push(k);
         }
-        let results: Vec<Vec<(usize, f64)>> = order
+        let results: Vec<Vec<(usize, Vec<f64>)>> = order
             .par_iter()
             .map(|key| {
                 let idx = &groups[key];
                 let wo = pairs[idx[0]].wo;
                 if wo.z <= 0.0 {
-                    return idx.iter().map(|&k| (k, 0.0)).collect();
+                    return idx.iter().map(|&k| (k, vec![0.0; mats.len()])).collect();
                 }
                 let hits = self.view_hits(wo);
                 idx.iter()
                     .map(|&k| {
                         let wi = pairs[k].wi;
                         let v = if wi.z > 0.0 {
-                            self.shade(mat, &hits, wi, wo)
+                            self.shade(mats, &hits, wi, wo)
                         } else {
-                            0.0
+                            vec![0.0; mats.len()]
                         };
-                        (k, if v.is_finite() { v } else { 0.0 })
+                        (
+                            k,
+                            v.into_iter()
+                                .map(|x| if x.is_finite() { x } else { 0.0 })
+                                .collect(),
+                        )
                     })
                     .collect()
             })
             .collect();
-        let mut out = vec![0.0; pairs.len()];
+        let mut out = vec![vec![0.0; pairs.len()]; mats.len()];
         for (k, v) in results.into_iter().flatten() {
-            out[k] = v;
+            for (m, x) in v.into_iter().enumerate() {
+                out[m][k] = x;
+            }
         }
         out
     }

@@ -30,6 +30,8 @@ pub mod vmf;
 
 // Libraries: compression and representatives.
 pub mod lowrank;
+pub mod store;
+pub mod library;
 
 // Files and commands.
 pub mod atomic_write;

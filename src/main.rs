@@ -60,11 +60,53 @@ enum Cmd {
         #[arg(long, short = 'q')]
         quiet: bool,
     },
+    /// Build, merge, describe and check precomputed libraries of geometries and materials.
+    Library {
+        #[command(subcommand)]
+        what: LibraryCmd,
+    },
     /// Benchmarks and accuracy tables of the forward model (prints Markdown tables).
     Bench {
         #[command(subcommand)]
         what: BenchCmd,
     },
+}
+
+#[derive(Subcommand)]
+enum LibraryCmd {
+    /// Build a library from a profile (profiles/library/<name>.toml or a path), whole or one shard.
+    Build {
+        /// Profile name (tiny, default, paper) or path to a profile TOML.
+        #[arg(long, default_value = "default")]
+        profile: String,
+        /// Output directory (default: the cache entry of the profile).
+        #[arg(long, short = 'o')]
+        out: Option<PathBuf>,
+        /// Cache root (default: $BISCALE_CACHE, $XDG_CACHE_HOME/biscale or ~/.cache/biscale).
+        #[arg(long)]
+        cache_dir: Option<PathBuf>,
+        /// Build only shard i of N (0-based, e.g. 3/8); then run `biscale library merge DIR`.
+        #[arg(long)]
+        shard: Option<String>,
+        /// Keep the per-chunk files after the merge.
+        #[arg(long)]
+        keep_chunks: bool,
+        /// No progress bars or log lines.
+        #[arg(long, short = 'q')]
+        quiet: bool,
+    },
+    /// Join the shards in a build directory, compress, pick representatives, write the manifest.
+    Merge {
+        dir: PathBuf,
+        #[arg(long)]
+        keep_chunks: bool,
+        #[arg(long, short = 'q')]
+        quiet: bool,
+    },
+    /// Print a library's counts, compression and build times.
+    Info { dir: PathBuf },
+    /// Check every file of a library against its manifest's checksums.
+    Verify { dir: PathBuf },
 }
 
 #[derive(Subcommand)]
@@ -74,6 +116,25 @@ enum BenchCmd {
         /// Repetitions per measurement (the median is reported).
         #[arg(long, default_value_t = 5)]
         reps: usize,
+    },
+    /// Precompute time per library geometry and material, extrapolated to a whole profile.
+    LibrarySpeed {
+        #[arg(long, default_value = "paper")]
+        profile: String,
+        /// Geometries timed (a quarter as many materials).
+        #[arg(long, default_value_t = 64)]
+        sample: usize,
+    },
+    /// fbar from a library's representatives (Eq. 12) against the exact evaluator.
+    LibraryAccuracy {
+        /// Library directory (built by `biscale library build`).
+        dir: PathBuf,
+        #[arg(long, default_value_t = 200)]
+        geometries: usize,
+        #[arg(long, default_value_t = 10)]
+        materials: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
     },
     /// Error of the fast evaluator against the exact one over random geometries and materials.
     Accuracy {
@@ -137,8 +198,53 @@ fn main() -> ExitCode {
                 }
             })
         }
+        Cmd::Library { what } => match what {
+            LibraryCmd::Build {
+                profile,
+                out,
+                cache_dir,
+                shard,
+                keep_chunks,
+                quiet,
+            } => shard
+                .as_deref()
+                .map(biscale::library::build::Shard::parse)
+                .unwrap_or(Ok(biscale::library::build::Shard::ALL))
+                .and_then(|shard| {
+                    biscale::library::commands::build(&biscale::library::commands::BuildJob {
+                        profile,
+                        out,
+                        cache_dir,
+                        shard,
+                        quiet,
+                        keep_chunks,
+                    })
+                })
+                .map(|t| print!("{t}")),
+            LibraryCmd::Merge {
+                dir,
+                keep_chunks,
+                quiet,
+            } => biscale::library::commands::merge(&dir, quiet, keep_chunks).map(|t| print!("{t}")),
+            LibraryCmd::Info { dir } => {
+                biscale::library::commands::info(&dir).map(|t| print!("{t}"))
+            }
+            LibraryCmd::Verify { dir } => {
+                biscale::library::commands::verify(&dir).map(|t| print!("{t}"))
+            }
+        },
         Cmd::Bench { what } => match what {
             BenchCmd::Speed { reps } => biscale::bench::speed(reps.max(1)).map(|t| print!("{t}")),
+            BenchCmd::LibrarySpeed { profile, sample } => {
+                biscale::library::bench::speed(&profile, sample.max(1)).map(|t| print!("{t}"))
+            }
+            BenchCmd::LibraryAccuracy {
+                dir,
+                geometries,
+                materials,
+                seed,
+            } => biscale::library::bench::accuracy(&dir, geometries.max(1), materials.max(1), seed)
+                .map(|t| print!("{t}")),
             BenchCmd::Accuracy { cases, seed } => {
                 biscale::bench::accuracy(cases.max(1), seed).map(|t| print!("{t}"))
             }

@@ -1,0 +1,675 @@
+//! Building a library: items are computed in chunks (the unit of resumption and of sharding),
+//! then merged into whole arrays and compressed.
+//!
+//! `build` computes the chunks of one shard (`--shard i/N` takes chunks `k ≡ i mod N`), skipping
+//! chunks already on disk whose checksum holds, so a killed build resumes where it stopped and
+//! shards can run on different machines over a shared directory. `merge` checks that every chunk
+//! is present, joins them into `geometry/gamma.bsa` and `material/prefiltered.bsa`, compresses
+//! both (material: SVD of the Gram matrix; geometry: streaming randomized SVD), picks
+//! representatives by CX, and writes `manifest.json` last: a directory with a manifest is a
+//! complete library. Every item depends only on the profile, the seed and its index, and every
+//! reduction has a fixed order, so the same profile and seed give byte-identical array files
+//! whether built in one process or in shards.
+
+use super::items::{
+    average_colour, colour_shifts, geometry_items, material_items, GeometryItem, MaterialItem,
+};
+use super::manifest::{ArrayEntry, CompressionReport, Manifest, StageTimes, MANIFEST_VERSION};
+use super::profile::LibraryProfile;
+use super::progress::Progress;
+use crate::error::{Error, Result};
+use crate::gamma::GammaLayout;
+use crate::generators::parse_generator;
+use crate::lowrank::{cx, rsvd_streaming, svd_gram, BlockSource, CxMethod, RsvdConfig};
+use crate::material::parse_material;
+use crate::prefilter::{PrefilterConfig, Prefiltered};
+use crate::store::{f32_bytes, write_array, ArrayFile, ArrayWriter, Dtype, Expect};
+use faer::{Mat, MatMut};
+use rayon::prelude::*;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Which part of the chunk list a process builds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Shard {
+    pub index: usize,
+    pub count: usize,
+}
+
+impl Shard {
+    pub const ALL: Shard = Shard { index: 0, count: 1 };
+
+    /// Parse `i/N` (0-based `i < N`).
+    pub fn parse(s: &str) -> Result<Self> {
+        let bad = || {
+            Error::new(
+                "--shard",
+                format!("'{s}': expected i/N with 0 <= i < N, e.g. 0/4"),
+            )
+        };
+        let (a, b) = s.split_once('/').ok_or_else(bad)?;
+        let (index, count): (usize, usize) = (
+            a.trim().parse().map_err(|_| bad())?,
+            b.trim().parse().map_err(|_| bad())?,
+        );
+        if count == 0 || index >= count {
+            return Err(bad());
+        }
+        Ok(Shard { index, count })
+    }
+}
+
+/// The settings derived from a profile that fix the arrays' shapes.
+pub fn gamma_layout(p: &LibraryProfile) -> GammaLayout {
+    GammaLayout::new(
+        p.geometry.view_theta,
+        p.geometry.view_phi,
+        p.geometry.normal_grid,
+    )
+}
+
+pub fn prefilter_config(p: &LibraryProfile) -> PrefilterConfig {
+    let s = &p.material.prefilter;
+    PrefilterConfig {
+        n_half: s.n_half,
+        n_theta_mu: s.n_theta_mu,
+        n_phi_mu: s.n_phi_mu,
+        samples: s.samples,
+    }
+}
+
+/// Entries of one material's prefiltered table.
+pub fn table_len(p: &LibraryProfile) -> usize {
+    let s = &p.material.prefilter;
+    s.n_half * crate::prefilter::KAPPAS.len() * s.n_theta_mu * s.n_phi_mu
+}
+
+fn chunk_path(dir: &Path, kind: &str, k: usize) -> PathBuf {
+    dir.join("chunks").join(format!("{kind}-{k:06}.bsa"))
+}
+
+/// Check or write `profile.toml`: a directory holds one profile's library.
+fn claim_dir(dir: &Path, prof: &LibraryProfile) -> Result<()> {
+    let path = dir.join("profile.toml");
+    let canon = prof.canonical();
+    match std::fs::read_to_string(&path) {
+        Ok(old) if old == canon => Ok(()),
+        Ok(_) => Err(Error::new(
+            path.display().to_string(),
+            format!(
+                "this directory holds a library of another profile (or seed); expected profile '{}' \
+                 with hash {} — use another --out directory or remove this one",
+                prof.name,
+                prof.hash()
+            ),
+        )),
+        Err(_) => crate::atomic_write::write_bytes(&path, canon.as_bytes()),
+    }
+}
+
+/// What a shard build did.
+#[derive(Debug, Clone)]
+pub struct BuildReport {
+    pub chunks_built: usize,
+    pub chunks_reused: usize,
+    pub geometry_seconds: f64,
+    pub material_seconds: f64,
+    pub geometries_built: usize,
+    pub materials_built: usize,
+}
+
+/// A chunk on disk whose header and checksum hold (a resumed build keeps it).
+fn chunk_ok(path: &Path, shape: &[usize]) -> bool {
+    ArrayFile::open(
+        path,
+        &Expect {
+            shape: Some(shape),
+            verify: true,
+            ..Default::default()
+        },
+    )
+    .is_ok()
+}
+
+/// Build this shard's chunks in `dir` (resuming: valid chunks are kept).
+pub fn build_shard(
+    prof: &LibraryProfile,
+    base: &Path,
+    dir: &Path,
+    shard: Shard,
+    progress: &Progress,
+) -> Result<BuildReport> {
+    std::fs::create_dir_all(dir.join("chunks"))
+        .map_err(|e| Error::io(dir, "create the library directory", e))?;
+    claim_dir(dir, prof)?;
+    let geos = geometry_items(prof, base)?;
+    let mats = material_items(prof, base)?;
+    let layout = gamma_layout(prof);
+    let rows = layout.rows();
+    let tlen = table_len(prof);
+    let pcfg = prefilter_config(prof);
+    let mut rep = BuildReport {
+        chunks_built: 0,
+        chunks_reused: 0,
+        geometry_seconds: 0.0,
+        material_seconds: 0.0,
+        geometries_built: 0,
+        materials_built: 0,
+    };
+    let chunk = prof.chunk;
+    let mine = |n: usize| -> Vec<usize> {
+        (0..n.div_ceil(chunk))
+            .filter(|k| k % shard.count == shard.index)
+            .collect()
+    };
+
+    // Geometry chunks.
+    let gk = mine(geos.len());
+    let todo: Vec<usize> = gk
+        .iter()
+        .copied()
+        .filter(|&k| {
+            let len = chunk.min(geos.len() - k * chunk);
+            !chunk_ok(&chunk_path(dir, "geometry", k), &[len, rows])
+        })
+        .collect();
+    rep.chunks_reused += gk.len() - todo.len();
+    let n_todo: usize = todo
+        .iter()
+        .map(|&k| chunk.min(geos.len() - k * chunk))
+        .sum();
+    let bar = progress.bar(n_todo as u64, "geometries (binned BVNDF)");
+    let t = Instant::now();
+    for &k in &todo {
+        let items = &geos[k * chunk..(k * chunk + chunk).min(geos.len())];
+        let cols: Vec<Vec<half::f16>> = items
+            .par_iter()
+            .map(|it| {
+                let col = geometry_column(it, &layout, prof.geometry.rays)?;
+                bar.inc(1);
+                Ok(col)
+            })
+            .collect::<Result<_>>()?;
+        let mut bytes = Vec::with_capacity(items.len() * rows * 2);
+        for c in &cols {
+            bytes.extend_from_slice(bytemuck::cast_slice(c));
+        }
+        write_array(
+            &chunk_path(dir, "geometry", k),
+            "gamma-chunk",
+            Dtype::F16,
+            &[items.len(), rows],
+            &bytes,
+        )?;
+        rep.chunks_built += 1;
+        rep.geometries_built += items.len();
+    }
+    bar.finish();
+    rep.geometry_seconds = t.elapsed().as_secs_f64();
+
+    // Material chunks.
+    let mk = mine(mats.len());
+    let todo: Vec<usize> = mk
+        .iter()
+        .copied()
+        .filter(|&k| {
+            let len = chunk.min(mats.len() - k * chunk);
+            !chunk_ok(&chunk_path(dir, "material", k), &[len, tlen])
+        })
+        .collect();
+    rep.chunks_reused += mk.len() - todo.len();
+    let n_todo: usize = todo
+        .iter()
+        .map(|&k| chunk.min(mats.len() - k * chunk))
+        .sum();
+    let bar = progress.bar(n_todo as u64, "materials (prefiltered F)");
+    let t = Instant::now();
+    for &k in &todo {
+        let items = &mats[k * chunk..(k * chunk + chunk).min(mats.len())];
+        let tables: Vec<Vec<f32>> = items
+            .par_iter()
+            .map(|it| {
+                let m = parse_material(&it.spec)
+                    .map_err(|e| e.within(format!("material item {}", it.index)))?;
+                let pf = Prefiltered::build(&m, &pcfg);
+                bar.inc(1);
+                Ok(pf.data)
+            })
+            .collect::<Result<_>>()?;
+        let mut bytes = Vec::with_capacity(items.len() * tlen * 4);
+        for t in &tables {
+            bytes.extend_from_slice(f32_bytes(t));
+        }
+        write_array(
+            &chunk_path(dir, "material", k),
+            "prefiltered-chunk",
+            Dtype::F32,
+            &[items.len(), tlen],
+            &bytes,
+        )?;
+        rep.chunks_built += 1;
+        rep.materials_built += items.len();
+    }
+    bar.finish();
+    rep.material_seconds = t.elapsed().as_secs_f64();
+    Ok(rep)
+}
+
+/// The binned BVNDF column of one geometry item, in half precision.
+pub fn geometry_column(
+    it: &GeometryItem,
+    layout: &GammaLayout,
+    rays: usize,
+) -> Result<Vec<half::f16>> {
+    let hf = parse_generator(&it.spec)
+        .and_then(|g| g.build())
+        .map_err(|e| e.within(format!("geometry item {}", it.index)))?;
+    Ok(layout
+        .column(&hf, rays)
+        .into_iter()
+        .map(half::f16::from_f32)
+        .collect())
+}
+
+/// A library array read as the matrix `B` whose column `j` is item `j` (items stored row-major,
+/// one item after another).
+pub struct ItemMatrix<'a> {
+    file: &'a ArrayFile,
+    items: usize,
+    len: usize,
+}
+
+impl<'a> ItemMatrix<'a> {
+    pub fn new(file: &'a ArrayFile) -> Self {
+        let s = &file.header.shape;
+        ItemMatrix {
+            file,
+            items: s[0],
+            len: s.get(1).copied().unwrap_or(1),
+        }
+    }
+}
+
+impl BlockSource for ItemMatrix<'_> {
+    fn rows(&self) -> usize {
+        self.len
+    }
+    fn cols(&self) -> usize {
+        self.items
+    }
+    fn read_block(
+        &self,
+        rows: Range<usize>,
+        cols: Range<usize>,
+        mut out: MatMut<'_, f64>,
+    ) -> Result<()> {
+        match self.file.header.dtype {
+            Dtype::F16 => {
+                let d = self.file.f16s()?;
+                for (jj, j) in cols.enumerate() {
+                    let src = &d[j * self.len + rows.start..j * self.len + rows.end];
+                    for (ii, v) in src.iter().enumerate() {
+                        out[(ii, jj)] = v.to_f64();
+                    }
+                }
+            }
+            Dtype::F32 => {
+                let d = self.file.f32s()?;
+                for (jj, j) in cols.enumerate() {
+                    let src = &d[j * self.len + rows.start..j * self.len + rows.end];
+                    for (ii, v) in src.iter().enumerate() {
+                        out[(ii, jj)] = *v as f64;
+                    }
+                }
+            }
+            d => {
+                return Err(Error::new(
+                    self.file.path.display().to_string(),
+                    format!("{d:?} is not a matrix type"),
+                ))
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Join the chunks of `kind` into one array file; returns its checksum.
+fn assemble(
+    dir: &Path,
+    kind: &str,
+    name: &str,
+    dtype: Dtype,
+    items: usize,
+    len: usize,
+    chunk: usize,
+    out: &Path,
+) -> Result<String> {
+    let mut w = ArrayWriter::create(out, name, dtype, &[items, len])?;
+    for k in 0..items.div_ceil(chunk) {
+        let n = chunk.min(items - k * chunk);
+        let p = chunk_path(dir, kind, k);
+        let f = ArrayFile::open(
+            &p,
+            &Expect {
+                dtype: Some(dtype),
+                shape: Some(&[n, len]),
+                verify: true,
+                ..Default::default()
+            },
+        )
+        .map_err(|e| {
+            e.within(format!(
+                "merge: {kind} chunk {k} (build the missing shards first)"
+            ))
+        })?;
+        w.write(f.bytes())?;
+    }
+    w.finish()
+}
+
+fn mat_f32_rows(m: &Mat<f64>) -> Vec<f32> {
+    // Stored item-major: [item][coordinate] (the transpose of `rank × n`).
+    let mut v = Vec::with_capacity(m.nrows() * m.ncols());
+    for j in 0..m.ncols() {
+        for i in 0..m.nrows() {
+            v.push(m[(i, j)] as f32);
+        }
+    }
+    v
+}
+
+fn save_f32(
+    dir: &Path,
+    rel: &str,
+    name: &str,
+    shape: &[usize],
+    v: &[f32],
+    files: &mut Vec<ArrayEntry>,
+) -> Result<()> {
+    let p = dir.join(rel);
+    write_array(&p, name, Dtype::F32, shape, f32_bytes(v))?;
+    files.push(ArrayEntry {
+        path: rel.into(),
+        checksum: crate::store::checksum(f32_bytes(v)),
+        bytes: std::fs::metadata(&p).map(|m| m.len()).unwrap_or(0),
+    });
+    Ok(())
+}
+
+fn save_u32(
+    dir: &Path,
+    rel: &str,
+    name: &str,
+    v: &[u32],
+    files: &mut Vec<ArrayEntry>,
+) -> Result<()> {
+    let p = dir.join(rel);
+    let b: &[u8] = bytemuck::cast_slice(v);
+    write_array(&p, name, Dtype::U32, &[v.len()], b)?;
+    files.push(ArrayEntry {
+        path: rel.into(),
+        checksum: crate::store::checksum(b),
+        bytes: std::fs::metadata(&p).map(|m| m.len()).unwrap_or(0),
+    });
+    Ok(())
+}
+
+/// Compress one item matrix and pick its representatives; writes `<kind>/coords.bsa`,
+/// `<kind>/singular.bsa`, `<kind>/representatives.bsa` and `<kind>/x.bsa`.
+fn compress(
+    dir: &Path,
+    kind: &str,
+    file: &ArrayFile,
+    prof: &LibraryProfile,
+    gram: bool,
+    files: &mut Vec<ArrayEntry>,
+) -> Result<CompressionReport> {
+    let c = &prof.compression;
+    let b = ItemMatrix::new(file);
+    let t = Instant::now();
+    let comp = if gram {
+        svd_gram(&b, c.material_energy, 4096, false)?
+    } else {
+        rsvd_streaming(
+            &b,
+            &RsvdConfig {
+                energy: c.geometry_energy,
+                oversample: c.oversample,
+                power_iters: c.power_iters,
+                max_rank: c.max_rank.min(b.cols()).max(1),
+                chunk: c.stream_chunk,
+                seed: prof.seed,
+            },
+            false,
+        )?
+    };
+    let svd_seconds = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let method = if c.cx_method == "leverage" {
+        CxMethod::Leverage { seed: prof.seed }
+    } else {
+        CxMethod::PivotedQr
+    };
+    let sel = cx(
+        comp.coords.as_ref(),
+        c.cx_error,
+        method,
+        comp.coords.nrows().max(1) * 4,
+    )?;
+    let cx_seconds = t.elapsed().as_secs_f64();
+    let n = comp.coords.ncols();
+    save_f32(
+        dir,
+        &format!("{kind}/coords.bsa"),
+        &format!("{kind}-coords"),
+        &[n, comp.rank],
+        &mat_f32_rows(&comp.coords),
+        files,
+    )?;
+    let sv: Vec<f32> = comp.singular.iter().map(|&s| s as f32).collect();
+    save_f32(
+        dir,
+        &format!("{kind}/singular.bsa"),
+        &format!("{kind}-singular"),
+        &[sv.len()],
+        &sv,
+        files,
+    )?;
+    let cols: Vec<u32> = sel.columns.iter().map(|&j| j as u32).collect();
+    save_u32(
+        dir,
+        &format!("{kind}/representatives.bsa"),
+        &format!("{kind}-representatives"),
+        &cols,
+        files,
+    )?;
+    save_f32(
+        dir,
+        &format!("{kind}/x.bsa"),
+        &format!("{kind}-x"),
+        &[n, cols.len()],
+        &mat_f32_rows(&sel.x),
+        files,
+    )?;
+    // Error of the whole chain against B: the SVD's lost energy plus CX's error on the kept part.
+    let lost = 1.0 - comp.kept_energy;
+    let total_rel = (lost + sel.rel_error.powi(2) * comp.kept_energy)
+        .max(0.0)
+        .sqrt();
+    Ok(CompressionReport {
+        rank: comp.rank,
+        energy_kept: comp.kept_energy,
+        passes: comp.passes,
+        representatives: cols.len(),
+        cx_rel_error: sel.rel_error,
+        total_rel_error: total_rel,
+        method: c.cx_method.clone(),
+        svd_seconds,
+        cx_seconds,
+    })
+}
+
+/// Peak resident memory of this process so far, in MiB (Linux; 0 elsewhere).
+pub fn peak_rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+        })
+        .map(|kb| kb / 1024.0)
+        .unwrap_or(0.0)
+}
+
+/// Join every chunk of `dir`, compress, and write the manifest. `build` carries the shard build's
+/// times when the merge follows a build in the same process.
+pub fn merge(
+    dir: &Path,
+    base: &Path,
+    progress: &Progress,
+    mut times: StageTimes,
+    keep_chunks: bool,
+) -> Result<Manifest> {
+    let ptext = std::fs::read_to_string(dir.join("profile.toml")).map_err(|e| {
+        Error::io(
+            &dir.join("profile.toml"),
+            "read (is this a library build directory?)",
+            e,
+        )
+    })?;
+    let prof = LibraryProfile::parse(&ptext, &dir.join("profile.toml").display().to_string())?;
+    let geos = geometry_items(&prof, base)?;
+    let mats = material_items(&prof, base)?;
+    let layout = gamma_layout(&prof);
+    let (rows, tlen) = (layout.rows(), table_len(&prof));
+    let mut files = Vec::new();
+    let t = Instant::now();
+    progress.note("merge: joining chunks");
+    let gpath = dir.join("geometry/gamma.bsa");
+    let sum = assemble(
+        dir,
+        "geometry",
+        "gamma",
+        Dtype::F16,
+        geos.len(),
+        rows,
+        prof.chunk,
+        &gpath,
+    )?;
+    files.push(ArrayEntry {
+        path: "geometry/gamma.bsa".into(),
+        checksum: sum,
+        bytes: std::fs::metadata(&gpath).map(|m| m.len()).unwrap_or(0),
+    });
+    let mpath = dir.join("material/prefiltered.bsa");
+    let sum = assemble(
+        dir,
+        "material",
+        "prefiltered",
+        Dtype::F32,
+        mats.len(),
+        tlen,
+        prof.chunk,
+        &mpath,
+    )?;
+    files.push(ArrayEntry {
+        path: "material/prefiltered.bsa".into(),
+        checksum: sum,
+        bytes: std::fs::metadata(&mpath).map(|m| m.len()).unwrap_or(0),
+    });
+    times.assemble = t.elapsed().as_secs_f64();
+
+    // Colours: each BRDF's own average colour and its colour-shift multipliers.
+    let t = Instant::now();
+    let lam: Vec<[f64; 3]> = mats
+        .par_iter()
+        .map(|m| {
+            parse_material(&m.spec)
+                .map(|mm| average_colour(&mm))
+                .map_err(|e| e.within(format!("material item {}", m.index)))
+        })
+        .collect::<Result<_>>()?;
+    let lam: Vec<f32> = lam.iter().flat_map(|c| c.map(|x| x as f32)).collect();
+    save_f32(
+        dir,
+        "material/colour.bsa",
+        "material-colour",
+        &[mats.len(), 3],
+        &lam,
+        &mut files,
+    )?;
+    let shifts: Vec<f32> = (0..mats.len())
+        .flat_map(|i| colour_shifts(&prof, i).into_iter().flatten())
+        .collect();
+    save_f32(
+        dir,
+        "material/colour-shifts.bsa",
+        "material-colour-shifts",
+        &[mats.len(), 1 + prof.material.colours, 3],
+        &shifts,
+        &mut files,
+    )?;
+    times.colours = t.elapsed().as_secs_f64();
+
+    progress.note(&format!("merge: material SVD ({} × {})", tlen, mats.len()));
+    let mfile = ArrayFile::open(&mpath, &Expect::default())?;
+    let material = compress(dir, "material", &mfile, &prof, true, &mut files)?;
+    progress.note(&format!(
+        "merge: geometry randomized SVD ({} × {})",
+        rows,
+        geos.len()
+    ));
+    let gfile = ArrayFile::open(&gpath, &Expect::default())?;
+    let geometry = compress(dir, "geometry", &gfile, &prof, false, &mut files)?;
+    times.compress =
+        material.svd_seconds + material.cx_seconds + geometry.svd_seconds + geometry.cx_seconds;
+
+    write_items(dir, &geos, &mats, &mut files)?;
+    times.peak_rss_mib = peak_rss_mib();
+    let manifest = Manifest {
+        format: "biscale-library".into(),
+        version: MANIFEST_VERSION,
+        tool_version: env!("CARGO_PKG_VERSION").into(),
+        profile: prof.name.clone(),
+        profile_hash: prof.hash(),
+        seed: prof.seed,
+        geometries: geos.len(),
+        materials: mats.len(),
+        colours_per_material: 1 + prof.material.colours,
+        gamma_rows: rows,
+        table_len: tlen,
+        material,
+        geometry,
+        files,
+        build: times,
+    };
+    manifest.write(dir)?;
+    if !keep_chunks {
+        let _ = std::fs::remove_dir_all(dir.join("chunks"));
+    }
+    Ok(manifest)
+}
+
+fn write_items(
+    dir: &Path,
+    geos: &[GeometryItem],
+    mats: &[MaterialItem],
+    files: &mut Vec<ArrayEntry>,
+) -> Result<()> {
+    for (rel, text) in [
+        ("geometry/items.json", serde_json::to_string_pretty(geos)),
+        ("material/items.json", serde_json::to_string_pretty(mats)),
+    ] {
+        let text =
+            text.map_err(|e| Error::new(rel, format!("cannot encode the item list: {e}")))?;
+        crate::atomic_write::write_bytes(&dir.join(rel), text.as_bytes())?;
+        files.push(ArrayEntry {
+            path: rel.into(),
+            checksum: crate::store::checksum(text.as_bytes()),
+            bytes: text.len() as u64,
+        });
+    }
+    Ok(())
+}

@@ -1,0 +1,133 @@
+//! The `biscale library` jobs (build, merge, info, verify) as library functions the CLI calls:
+//! each returns the text to print.
+
+use super::build::{build_shard, Shard};
+use super::manifest::Manifest;
+use super::profile::LibraryProfile;
+use super::progress::Progress;
+use super::{build_all, cache_path, cache_root, merge_shards, Library};
+use crate::error::Result;
+use std::path::{Path, PathBuf};
+
+/// Options of `biscale library build`.
+#[derive(Debug, Clone)]
+pub struct BuildJob {
+    pub profile: String,
+    /// Output directory; default: the cache entry of the profile.
+    pub out: Option<PathBuf>,
+    pub cache_dir: Option<PathBuf>,
+    pub shard: Shard,
+    pub quiet: bool,
+    pub keep_chunks: bool,
+}
+
+/// Build a library (or one shard of it). Returns a summary.
+pub fn build(job: &BuildJob) -> Result<String> {
+    let (prof, ppath) = LibraryProfile::load(&job.profile)?;
+    let base = ppath.parent().map(Path::to_path_buf).unwrap_or_default();
+    let dir = job
+        .out
+        .clone()
+        .unwrap_or_else(|| cache_path(&prof, &cache_root(job.cache_dir.as_deref())));
+    let progress = Progress { quiet: job.quiet };
+    progress.note(&format!(
+        "library build: profile '{}' ({} geometries), seed {}, into {}{}",
+        prof.name,
+        prof.geometry_count(),
+        prof.seed,
+        dir.display(),
+        if job.shard.count > 1 {
+            format!(", shard {}/{}", job.shard.index, job.shard.count)
+        } else {
+            String::new()
+        }
+    ));
+    if job.shard.count == 1 {
+        let m = build_all(&prof, &base, &dir, &progress, job.keep_chunks)?;
+        return Ok(summary(&dir, &m));
+    }
+    let rep = build_shard(&prof, &base, &dir, job.shard, &progress)?;
+    Ok(format!(
+        "shard {}/{} of '{}' in {}: {} chunks built ({} geometries in {:.1} s, {} materials in {:.1} s), {} reused.\n\
+         When every shard is done: biscale library merge {}\n",
+        job.shard.index,
+        job.shard.count,
+        prof.name,
+        dir.display(),
+        rep.chunks_built,
+        rep.geometries_built,
+        rep.geometry_seconds,
+        rep.materials_built,
+        rep.material_seconds,
+        rep.chunks_reused,
+        dir.display()
+    ))
+}
+
+/// Merge shards built into `dir`.
+pub fn merge(dir: &Path, quiet: bool, keep_chunks: bool) -> Result<String> {
+    let m = merge_shards(dir, &Progress { quiet }, keep_chunks)?;
+    Ok(summary(dir, &m))
+}
+
+/// Describe a library.
+pub fn info(dir: &Path) -> Result<String> {
+    let lib = Library::open(dir)?;
+    Ok(summary(dir, &lib.manifest))
+}
+
+/// Check every file of a library against its manifest.
+pub fn verify(dir: &Path) -> Result<String> {
+    let lib = Library::open(dir)?;
+    let n = lib.verify_all()?;
+    Ok(format!(
+        "{}: {n} files match their checksums\n",
+        dir.display()
+    ))
+}
+
+fn summary(dir: &Path, m: &Manifest) -> String {
+    let bytes: u64 = m.files.iter().map(|f| f.bytes).sum();
+    let b = &m.build;
+    let mut s = format!(
+        "library {} (profile '{}', seed {}, biscale {}): {:.1} MB\n\
+         | part | items | rows per item | SVD rank | energy kept | passes | representatives | CX error | total error |\n\
+         |---|---|---|---|---|---|---|---|---|\n",
+        dir.display(),
+        m.profile,
+        m.seed,
+        m.tool_version,
+        bytes as f64 / 1e6
+    );
+    for (name, n, rows, c) in [
+        ("geometry", m.geometries, m.gamma_rows, &m.geometry),
+        ("material", m.materials, m.table_len, &m.material),
+    ] {
+        s.push_str(&format!(
+            "| {name} | {n} | {rows} | {} | {:.4} | {} | {} ({}) | {:.4} | {:.4} |\n",
+            c.rank,
+            c.energy_kept,
+            c.passes,
+            c.representatives,
+            c.method,
+            c.cx_rel_error,
+            c.total_rel_error
+        ));
+    }
+    s.push_str(&format!(
+        "colours: {} per distinct material ({} effective materials)\n\
+         build: geometries {:.1} s, materials {:.1} s, join {:.1} s, colours {:.1} s, compression {:.1} s; \
+         total {:.1} s on {} threads; peak memory {:.0} MiB\n",
+        m.colours_per_material,
+        m.materials * m.colours_per_material,
+        b.geometry_seconds,
+        b.material_seconds,
+        b.assemble,
+        b.colours,
+        b.compress,
+        b.total_seconds,
+        b.threads,
+        b.peak_rss_mib
+    ));
+    s
+}

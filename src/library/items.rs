@@ -1,0 +1,268 @@
+//! The members of a library, drawn from a profile: every geometry as a procedural spec (heights are
+//! regenerated from it, never stored) and every distinct material as a material spec, each with a
+//! readable name and its parameters. Item `k` depends only on the profile's seed and `k`, so any
+//! shard can draw any item and all shards agree.
+
+use super::profile::{GeometryFamily, LibraryProfile, MaterialFamily, Range2};
+use crate::error::{Error, Result};
+use crate::frame::Vec3;
+use crate::material::{parse_material, Material};
+use crate::rng::Rng;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// Stream offsets so geometry and material draws never share random numbers.
+const GEOMETRY_STREAM: u64 = 0x4745_4f00_0000_0000;
+const MATERIAL_STREAM: u64 = 0x4d41_5400_0000_0000;
+const COLOUR_STREAM: u64 = 0x434f_4c00_0000_0000;
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GeometryItem {
+    pub index: usize,
+    /// The generator family (`vgroove`, `texture`, ...).
+    pub family: String,
+    /// The full generator spec: `biscale forward --geometry '<spec>'` rebuilds the heights.
+    pub spec: String,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MaterialItem {
+    pub index: usize,
+    /// `ggx`, `merl`, ...
+    pub family: String,
+    /// The material spec (a MERL item's spec is its file path).
+    pub spec: String,
+}
+
+const INTEGER_KEYS: [&str; 5] = ["count", "cells", "octaves", "patch", "seed"];
+
+fn draw(rng: &mut Rng, params: &BTreeMap<String, Range2>, log: &[String]) -> Vec<(String, f64)> {
+    params
+        .iter()
+        .map(|(k, &[lo, hi])| {
+            let u = rng.uniform();
+            let v = if log.contains(k) {
+                (lo.ln() + u * (hi.ln() - lo.ln())).exp()
+            } else {
+                lo + u * (hi - lo)
+            };
+            let v = if INTEGER_KEYS.contains(&k.as_str()) {
+                v.round()
+            } else {
+                // Four significant digits keep names readable and specs exact.
+                let m = 10f64.powi(3 - v.abs().max(1e-300).log10().floor() as i32);
+                (v * m).round() / m
+            };
+            (k.clone(), v)
+        })
+        .collect()
+}
+
+fn png_files(dirs: &[PathBuf], base: &Path, ctx: &str) -> Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    for d in dirs {
+        let d = if d.is_absolute() {
+            d.clone()
+        } else {
+            base.join(d)
+        };
+        let rd = std::fs::read_dir(&d)
+            .map_err(|e| Error::io(&d, "list the texture directory", e).within(ctx))?;
+        for e in rd.flatten() {
+            let p = e.path();
+            if p.extension().is_some_and(|x| x.eq_ignore_ascii_case("png")) {
+                out.push(p);
+            }
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+/// Every geometry of the profile. `base` is the profile's directory (for relative texture dirs).
+pub fn geometry_items(prof: &LibraryProfile, base: &Path) -> Result<Vec<GeometryItem>> {
+    let mut out = Vec::with_capacity(prof.geometry_count());
+    for (fi, fam) in prof.geometry.family.iter().enumerate() {
+        let ctx = format!("geometry.family[{fi}]");
+        let files = if fam.generator == "texture" {
+            png_files(&fam.texture_dirs, base, &ctx)?
+        } else {
+            Vec::new()
+        };
+        for j in 0..fam.count {
+            let index = out.len();
+            let spec = geometry_spec(prof, fam, &files, j, index).map_err(|e| e.within(&ctx))?;
+            out.push(GeometryItem {
+                index,
+                family: fam.generator.clone(),
+                spec,
+            });
+        }
+    }
+    Ok(out)
+}
+
+fn geometry_spec(
+    prof: &LibraryProfile,
+    fam: &GeometryFamily,
+    files: &[PathBuf],
+    j: usize,
+    index: usize,
+) -> Result<String> {
+    let mut rng = Rng::stream(prof.seed, GEOMETRY_STREAM + index as u64);
+    let mut items = vec![format!("n={}", prof.geometry.resolution)];
+    let drawn = draw(&mut rng, &fam.params, &fam.log);
+    let has = |k: &str| drawn.iter().any(|(kk, _)| kk == k);
+    for (k, v) in &drawn {
+        items.push(format!("{k}={v}"));
+    }
+    let gen = crate::generators::parse_generator(&format!("{}:", fam.generator))?;
+    if gen.get("seed").is_some() && !has("seed") {
+        items.push(format!("seed={}", rng.below(1 << 31)));
+    }
+    if fam.generator == "texture" {
+        let builtins = if fam.builtin_textures {
+            crate::texture::builtin_names()
+        } else {
+            &[]
+        };
+        let total = builtins.len() + files.len();
+        if total == 0 {
+            return Err(Error::new(
+                "texture_dirs",
+                "no built-in textures and no PNG files found",
+            ));
+        }
+        let t = j % total;
+        if t < builtins.len() {
+            items.push(format!("tex={}", builtins[t]));
+        } else {
+            items.push(format!("file={}", files[t - builtins.len()].display()));
+        }
+        if !has("patch") {
+            items.push(format!("patch={}", (j / total) % 16));
+        }
+    }
+    let spec = format!("{}:{}", fam.generator, items.join(","));
+    // Validate now, so a bad range fails before any work.
+    Ok(crate::generators::parse_generator(&spec)?.name())
+}
+
+fn material_spec(fam: &MaterialFamily, drawn: &[(String, f64)], albedo: f64) -> String {
+    let params: Vec<String> = drawn.iter().map(|(k, v)| format!("{k}={v}")).collect();
+    let mut s = if params.is_empty() {
+        fam.model.clone()
+    } else {
+        format!("{}:{}", fam.model, params.join(","))
+    };
+    if albedo > 0.0 {
+        s.push_str(&format!("+lambert:albedo={albedo}"));
+    }
+    s
+}
+
+/// Every distinct material of the profile: each analytic draw mixed with every Lambertian albedo,
+/// then every MERL file of the profile's directories (sorted by path).
+pub fn material_items(prof: &LibraryProfile, base: &Path) -> Result<Vec<MaterialItem>> {
+    let mut out = Vec::new();
+    for (fi, fam) in prof.material.family.iter().enumerate() {
+        let ctx = format!("material.family[{fi}]");
+        for j in 0..fam.count {
+            let mut rng = Rng::stream(prof.seed, MATERIAL_STREAM + ((fi as u64) << 32) + j as u64);
+            let drawn = draw(&mut rng, &fam.params, &fam.log);
+            for &a in &prof.material.lambert {
+                let spec = material_spec(fam, &drawn, a);
+                parse_material(&spec).map_err(|e| e.within(&ctx))?;
+                out.push(MaterialItem {
+                    index: out.len(),
+                    family: fam.model.clone(),
+                    spec,
+                });
+            }
+        }
+    }
+    let mut merl = Vec::new();
+    for d in &prof.material.merl_dirs {
+        let d = if d.is_absolute() {
+            d.clone()
+        } else {
+            base.join(d)
+        };
+        let rd = std::fs::read_dir(&d).map_err(|e| {
+            Error::io(&d, "list the MERL directory", e).within("material.merl_dirs")
+        })?;
+        merl.extend(
+            rd.flatten()
+                .map(|e| e.path())
+                .filter(|p| p.extension().is_some_and(|x| x == "binary")),
+        );
+    }
+    merl.sort();
+    for p in merl {
+        out.push(MaterialItem {
+            index: out.len(),
+            family: "merl".into(),
+            spec: p.display().to_string(),
+        });
+    }
+    Ok(out)
+}
+
+/// The average RGB colour `lambda` of a material (Eq. 13): its flat-patch `fbar` averaged over a
+/// fixed set of 70 direction pairs.
+pub fn average_colour(mat: &Material) -> [f64; 3] {
+    let pairs = crate::pairs::default_pairs(10);
+    let mut s = [0.0; 3];
+    for p in &pairs {
+        let d = p.dirs();
+        let v = mat.eval_rgb(Vec3::Z, d.wi, d.wo);
+        for c in 0..3 {
+            s[c] += v[c] * d.wi.z;
+        }
+    }
+    s.map(|x| x / pairs.len() as f64)
+}
+
+/// The colour multipliers of material `index`: entry 0 is its own (`[1, 1, 1]`), then
+/// `prof.material.colours` random colours with channel mean 1 (so the single-channel BRDF the
+/// solvers match is unchanged; only `lambda` moves, Sec. 5.1).
+pub fn colour_shifts(prof: &LibraryProfile, index: usize) -> Vec<[f32; 3]> {
+    let mut rng = Rng::stream(prof.seed, COLOUR_STREAM + index as u64);
+    let mut out = vec![[1.0f32; 3]];
+    for _ in 0..prof.material.colours {
+        let c = [
+            rng.range(0.05, 1.0),
+            rng.range(0.05, 1.0),
+            rng.range(0.05, 1.0),
+        ];
+        let m = (c[0] + c[1] + c[2]) / 3.0;
+        out.push([(c[0] / m) as f32, (c[1] / m) as f32, (c[2] / m) as f32]);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn items_are_deterministic_valid_and_named() {
+        let (p, path) = LibraryProfile::load("tiny").unwrap();
+        let base = path.parent().unwrap();
+        let g1 = geometry_items(&p, base).unwrap();
+        let g2 = geometry_items(&p, base).unwrap();
+        assert_eq!(g1, g2);
+        assert_eq!(g1.len(), p.geometry_count());
+        for g in &g1 {
+            crate::generators::parse_generator(&g.spec).unwrap();
+        }
+        let m = material_items(&p, base).unwrap();
+        assert!(m.iter().any(|x| x.spec.contains("+lambert")));
+        let c = colour_shifts(&p, 3);
+        assert_eq!(c.len(), 1 + p.material.colours);
+        for x in &c {
+            assert!(((x[0] + x[1] + x[2]) / 3.0 - 1.0).abs() < 1e-5);
+        }
+    }
+}

@@ -1,0 +1,253 @@
+//! Precomputed libraries of small-scale geometries and materials (paper Sec. 4–5): what they hold,
+//! how they are built (in one process or in shards), stored, compressed, found in the cache and
+//! opened lazily.
+//!
+//! A library is one directory:
+//!
+//! ```text
+//! manifest.json                 counts, shapes, compression, checksums, build times (written last)
+//! profile.toml                  the canonical profile it was built from
+//! geometry/items.json           every geometry: index, family, generator spec
+//! geometry/gamma.bsa            f16 [geometries, rows]: binned BVNDF columns (crate::gamma)
+//! geometry/coords.bsa           f32 [geometries, rank]: SVD coordinates Sigma V^T
+//! geometry/singular.bsa         f32: singular values
+//! geometry/representatives.bsa  u32: CX column indices c(k)
+//! geometry/x.bsa                f32 [geometries, c]: CX weights X (Eq. 11)
+//! material/...                  the same for materials, with prefiltered.bsa (f32 [materials,
+//!                               table]) instead of gamma.bsa, and colour.bsa / colour-shifts.bsa
+//! chunks/                       build work, removed after the merge
+//! ```
+//!
+//! [`Library::open`] reads only the manifest; each array is mapped and checked the first time a
+//! run asks for it, and the library records what was read so runs can say so in their log.
+
+pub mod bench;
+pub mod build;
+pub mod commands;
+pub mod items;
+pub mod manifest;
+pub mod profile;
+pub mod progress;
+
+use crate::error::{Error, Result};
+use crate::gamma::GammaLayout;
+use crate::store::{ArrayFile, Expect};
+use build::{merge, Shard};
+use items::{GeometryItem, MaterialItem};
+use manifest::{Manifest, StageTimes};
+use profile::LibraryProfile;
+use progress::Progress;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+/// Build a whole library into `dir` in this process (all chunks, then the merge).
+pub fn build_all(
+    prof: &LibraryProfile,
+    base: &Path,
+    dir: &Path,
+    progress: &Progress,
+    keep_chunks: bool,
+) -> Result<Manifest> {
+    let t = Instant::now();
+    let rep = build::build_shard(prof, base, dir, Shard::ALL, progress)?;
+    let times = StageTimes {
+        geometry_seconds: rep.geometry_seconds,
+        material_seconds: rep.material_seconds,
+        threads: rayon::current_num_threads(),
+        shards_in_process: 1,
+        ..Default::default()
+    };
+    let mut m = merge(dir, base, progress, times, keep_chunks)?;
+    m.build.total_seconds = t.elapsed().as_secs_f64();
+    m.write(dir)?;
+    Ok(m)
+}
+
+/// Merge the shards built into `dir` by `biscale library build --shard i/N`.
+pub fn merge_shards(dir: &Path, progress: &Progress, keep_chunks: bool) -> Result<Manifest> {
+    let t = Instant::now();
+    let (_, base) = profile_of(dir)?;
+    let times = StageTimes {
+        threads: rayon::current_num_threads(),
+        ..Default::default()
+    };
+    let mut m = merge(dir, &base, progress, times, keep_chunks)?;
+    m.build.total_seconds = t.elapsed().as_secs_f64();
+    m.write(dir)?;
+    Ok(m)
+}
+
+/// The profile stored in a build directory; relative paths in it resolve against the directory.
+fn profile_of(dir: &Path) -> Result<(LibraryProfile, PathBuf)> {
+    let p = dir.join("profile.toml");
+    let text = std::fs::read_to_string(&p)
+        .map_err(|e| Error::io(&p, "read (is this a library directory?)", e))?;
+    Ok((
+        LibraryProfile::parse(&text, &p.display().to_string())?,
+        dir.to_path_buf(),
+    ))
+}
+
+/// The cache root: `--cache-dir`, else `$BISCALE_CACHE`, else `$XDG_CACHE_HOME/biscale`, else
+/// `~/.cache/biscale`, else `outputs/cache`.
+pub fn cache_root(explicit: Option<&Path>) -> PathBuf {
+    if let Some(p) = explicit {
+        return p.to_path_buf();
+    }
+    if let Some(p) = std::env::var_os("BISCALE_CACHE") {
+        return PathBuf::from(p);
+    }
+    if let Some(p) = std::env::var_os("XDG_CACHE_HOME") {
+        return PathBuf::from(p).join("biscale");
+    }
+    if let Some(h) = std::env::var_os("HOME") {
+        return PathBuf::from(h).join(".cache").join("biscale");
+    }
+    PathBuf::from("outputs").join("cache")
+}
+
+/// Where the cache keeps the library of `prof`: named by profile and the hash of its contents.
+pub fn cache_path(prof: &LibraryProfile, root: &Path) -> PathBuf {
+    root.join("libraries")
+        .join(format!("{}-{}", prof.name, &prof.hash()[..12]))
+}
+
+/// Open the cached library of `profile` (a name or a path), building it first if it is missing
+/// or incomplete (a half-built one resumes).
+pub fn ensure(profile: &str, cache: Option<&Path>, progress: &Progress) -> Result<Library> {
+    let (prof, ppath) = LibraryProfile::load(profile)?;
+    let dir = cache_path(&prof, &cache_root(cache));
+    if dir.join("manifest.json").exists() {
+        progress.note(&format!("library: using {} ({})", dir.display(), prof.name));
+        return Library::open(&dir);
+    }
+    progress.note(&format!(
+        "library: building profile '{}' into {} (first use; later runs reuse it)",
+        prof.name,
+        dir.display()
+    ));
+    let base = ppath.parent().map(Path::to_path_buf).unwrap_or_default();
+    build_all(&prof, &base, &dir, progress, false)?;
+    Library::open(&dir)
+}
+
+/// An opened library: the manifest, and arrays mapped on first use.
+pub struct Library {
+    pub dir: PathBuf,
+    pub manifest: Manifest,
+    pub profile: LibraryProfile,
+    arrays: Mutex<BTreeMap<String, Arc<ArrayFile>>>,
+    reads: Mutex<Vec<String>>,
+}
+
+impl Library {
+    /// Read the manifest and the profile; no array is touched.
+    pub fn open(dir: &Path) -> Result<Self> {
+        let manifest = Manifest::read(dir)?;
+        let (profile, _) = profile_of(dir)?;
+        if profile.hash() != manifest.profile_hash {
+            return Err(Error::new(
+                dir.join("profile.toml").display().to_string(),
+                "does not match manifest.json (profile hash differs): the library is inconsistent; rebuild it",
+            ));
+        }
+        Ok(Library {
+            dir: dir.to_path_buf(),
+            manifest,
+            profile,
+            arrays: Mutex::new(BTreeMap::new()),
+            reads: Mutex::new(Vec::new()),
+        })
+    }
+
+    /// Map `rel` (a path listed in the manifest), checking header, shape and checksum once.
+    pub fn array(&self, rel: &str) -> Result<Arc<ArrayFile>> {
+        if let Some(a) = self.arrays.lock().ok().and_then(|m| m.get(rel).cloned()) {
+            return Ok(a);
+        }
+        let entry = self
+            .manifest
+            .files
+            .iter()
+            .find(|e| e.path == rel)
+            .ok_or_else(|| {
+                Error::new(
+                    self.dir.join("manifest.json").display().to_string(),
+                    format!("lists no file '{rel}'"),
+                )
+            })?;
+        let f = ArrayFile::open(
+            &self.dir.join(rel),
+            &Expect {
+                verify: true,
+                ..Default::default()
+            },
+        )?;
+        if f.header.checksum != entry.checksum {
+            return Err(Error::new(
+                f.path.display().to_string(),
+                format!("checksum {} differs from the manifest's {}: files from different builds; rebuild", f.header.checksum, entry.checksum),
+            ));
+        }
+        let f = Arc::new(f);
+        if let Ok(mut r) = self.reads.lock() {
+            r.push(format!(
+                "{rel} ({:.1} MB)",
+                f.header.data_bytes() as f64 / 1e6
+            ));
+        }
+        if let Ok(mut m) = self.arrays.lock() {
+            m.insert(rel.into(), f.clone());
+        }
+        Ok(f)
+    }
+
+    /// What this run has read so far (for the log).
+    pub fn reads(&self) -> Vec<String> {
+        self.reads.lock().map(|r| r.clone()).unwrap_or_default()
+    }
+
+    fn json<T: serde::de::DeserializeOwned>(&self, rel: &str) -> Result<T> {
+        let p = self.dir.join(rel);
+        let bytes = std::fs::read(&p).map_err(|e| Error::io(&p, "read", e))?;
+        if let Some(e) = self.manifest.files.iter().find(|e| e.path == rel) {
+            if crate::store::checksum(&bytes) != e.checksum {
+                return Err(Error::new(
+                    p.display().to_string(),
+                    "checksum differs from the manifest: corrupted; rebuild",
+                ));
+            }
+        }
+        if let Ok(mut r) = self.reads.lock() {
+            r.push(format!("{rel} ({:.1} kB)", bytes.len() as f64 / 1e3));
+        }
+        serde_json::from_slice(&bytes)
+            .map_err(|e| Error::new(p.display().to_string(), format!("corrupted item list: {e}")))
+    }
+
+    pub fn geometry_items(&self) -> Result<Vec<GeometryItem>> {
+        self.json("geometry/items.json")
+    }
+
+    pub fn material_items(&self) -> Result<Vec<MaterialItem>> {
+        self.json("material/items.json")
+    }
+
+    pub fn gamma_layout(&self) -> GammaLayout {
+        build::gamma_layout(&self.profile)
+    }
+
+    /// Check every file against the manifest (reads everything).
+    pub fn verify_all(&self) -> Result<usize> {
+        for e in &self.manifest.files {
+            if e.path.ends_with(".json") {
+                let _: serde_json::Value = self.json(&e.path)?;
+            } else {
+                self.array(&e.path)?;
+            }
+        }
+        Ok(self.manifest.files.len())
+    }
+}

@@ -1,0 +1,385 @@
+//! Library size profiles: the TOML files in `profiles/library/` that say what a library holds
+//! (which generators, textures and material models, how many of each, over which parameter
+//! ranges), how finely each item is tabulated, and how hard the compression works.
+//!
+//! A profile is a name (a shipped file `profiles/library/<name>.toml`) or a path. Unknown keys,
+//! missing keys, wrong types and out-of-range values are errors naming the file and the key.
+
+use crate::error::{Error, Result};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// A parameter range `[lo, hi]`, sampled uniformly (or log-uniformly when listed in `log`).
+pub type Range2 = [f64; 2];
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LibraryProfile {
+    /// Profile name (written into the manifest).
+    pub name: String,
+    /// Seed of every random choice of the build.
+    pub seed: u64,
+    /// Items per chunk: the unit of resumption and of sharding.
+    pub chunk: usize,
+    pub geometry: GeometrySection,
+    pub material: MaterialSection,
+    pub compression: CompressionSection,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GeometrySection {
+    /// Samples per side of every heightfield (the generators' `n`).
+    pub resolution: usize,
+    /// View grid of the binned BVNDF: polar and azimuthal nodes.
+    pub view_theta: usize,
+    pub view_phi: usize,
+    /// Normal grid side `G` (G × G nodes).
+    pub normal_grid: usize,
+    /// View rays per view node.
+    pub rays: usize,
+    #[serde(default)]
+    pub family: Vec<GeometryFamily>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GeometryFamily {
+    /// A generator name of `biscale forward --help` (`vgroove`, `bricks`, ..., `texture`).
+    pub generator: String,
+    /// Items drawn from this family.
+    pub count: usize,
+    /// Parameter ranges; integer parameters (`count`, `cells`, `octaves`, `patch`) are rounded.
+    #[serde(default)]
+    pub params: BTreeMap<String, Range2>,
+    /// Parameters sampled log-uniformly.
+    #[serde(default)]
+    pub log: Vec<String>,
+    /// Texture families: use the built-in procedural textures.
+    #[serde(default)]
+    pub builtin_textures: bool,
+    /// Texture families: directories of PNG images (relative to the profile file).
+    #[serde(default)]
+    pub texture_dirs: Vec<PathBuf>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MaterialSection {
+    /// Prefiltered table resolution and quadrature samples per entry.
+    pub prefilter: PrefilterSection,
+    /// Colour-shifted variants per distinct BRDF (besides its own colour).
+    pub colours: usize,
+    /// Lambertian albedos mixed into every analytic lobe (0 = the pure lobe).
+    pub lambert: Vec<f64>,
+    /// Directories of MERL `.binary` files (relative to the profile file).
+    #[serde(default)]
+    pub merl_dirs: Vec<PathBuf>,
+    #[serde(default)]
+    pub family: Vec<MaterialFamily>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PrefilterSection {
+    pub n_half: usize,
+    pub n_theta_mu: usize,
+    pub n_phi_mu: usize,
+    pub samples: usize,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MaterialFamily {
+    /// A lobe model of the material grammar: `ggx`, `beckmann`, `ct`, `ward`, `blinn`.
+    pub model: String,
+    /// Distinct parameter draws (each mixed with every `lambert` albedo).
+    pub count: usize,
+    #[serde(default)]
+    pub params: BTreeMap<String, Range2>,
+    #[serde(default)]
+    pub log: Vec<String>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CompressionSection {
+    /// Energy kept by the material SVD (paper: 0.999).
+    pub material_energy: f64,
+    /// Energy kept by the geometry randomized SVD (paper: 0.99).
+    pub geometry_energy: f64,
+    /// CX relative error threshold (paper: 0.015).
+    pub cx_error: f64,
+    /// `pivoted-qr` (deterministic) or `leverage` (Drineas et al. 2008).
+    pub cx_method: String,
+    pub oversample: usize,
+    pub power_iters: usize,
+    pub max_rank: usize,
+    /// Columns per streamed chunk of the randomized SVD.
+    pub stream_chunk: usize,
+}
+
+/// Where shipped library profiles live.
+pub fn shipped_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("profiles")
+        .join("library")
+}
+
+/// Names of the shipped library profiles.
+pub fn shipped_names() -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(shipped_dir())
+        .map(|rd| {
+            rd.filter_map(|e| e.ok())
+                .filter_map(|e| {
+                    let p = e.path();
+                    (p.extension()? == "toml")
+                        .then(|| p.file_stem().map(|s| s.to_string_lossy().into_owned()))
+                        .flatten()
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    v.sort();
+    v
+}
+
+impl LibraryProfile {
+    /// Load a profile by shipped name (`tiny`, `default`, `paper`) or by path.
+    pub fn load(name_or_path: &str) -> Result<(Self, PathBuf)> {
+        let p = Path::new(name_or_path);
+        let path = if p.extension().is_some_and(|e| e == "toml") || p.components().count() > 1 {
+            p.to_path_buf()
+        } else {
+            let f = shipped_dir().join(format!("{name_or_path}.toml"));
+            if !f.exists() {
+                return Err(Error::new(
+                    "--profile",
+                    format!(
+                        "no library profile '{name_or_path}' (shipped: {}; or give a path to a .toml file)",
+                        shipped_names().join(", ")
+                    ),
+                ));
+            }
+            f
+        };
+        let text = std::fs::read_to_string(&path)
+            .map_err(|e| Error::io(&path, "read the library profile", e))?;
+        let prof = Self::parse(&text, &path.display().to_string())?;
+        Ok((prof, path))
+    }
+
+    /// Parse and validate profile text; `ctx` names the file in errors.
+    pub fn parse(text: &str, ctx: &str) -> Result<Self> {
+        let prof: LibraryProfile = toml::from_str(text).map_err(|e| toml_error(ctx, &e))?;
+        prof.validate().map_err(|e| e.within(ctx))?;
+        Ok(prof)
+    }
+
+    fn validate(&self) -> Result<()> {
+        let pos = |key: &str, v: usize, min: usize| {
+            if v < min {
+                Err(Error::new(
+                    key,
+                    format!("expected an integer >= {min}, got {v}"),
+                ))
+            } else {
+                Ok(())
+            }
+        };
+        pos("chunk", self.chunk, 1)?;
+        let g = &self.geometry;
+        pos("geometry.resolution", g.resolution, 8)?;
+        pos("geometry.view_theta", g.view_theta, 2)?;
+        pos("geometry.view_phi", g.view_phi, 3)?;
+        pos("geometry.normal_grid", g.normal_grid, 3)?;
+        pos("geometry.rays", g.rays, 1)?;
+        for (i, f) in g.family.iter().enumerate() {
+            let key = format!("geometry.family[{i}]");
+            let names: Vec<&str> = crate::generators::list().iter().map(|x| x.0).collect();
+            if !names.contains(&f.generator.as_str()) {
+                return Err(Error::new(
+                    format!("{key}.generator"),
+                    format!(
+                        "unknown generator '{}' (expected one of: {})",
+                        f.generator,
+                        names.join(", ")
+                    ),
+                ));
+            }
+            check_ranges(&key, &f.params, &f.log)?;
+            if f.generator == "texture" && !f.builtin_textures && f.texture_dirs.is_empty() {
+                return Err(Error::new(
+                    key,
+                    "a texture family needs builtin_textures = true or texture_dirs = [...]",
+                ));
+            }
+        }
+        let m = &self.material;
+        pos("material.prefilter.n_half", m.prefilter.n_half, 2)?;
+        pos("material.prefilter.n_theta_mu", m.prefilter.n_theta_mu, 2)?;
+        pos("material.prefilter.n_phi_mu", m.prefilter.n_phi_mu, 2)?;
+        pos("material.prefilter.samples", m.prefilter.samples, 1)?;
+        for (i, a) in m.lambert.iter().enumerate() {
+            if !(0.0..=1.0).contains(a) {
+                return Err(Error::new(
+                    format!("material.lambert[{i}]"),
+                    format!("expected an albedo in [0, 1], got {a}"),
+                ));
+            }
+        }
+        if m.lambert.is_empty() {
+            return Err(Error::new(
+                "material.lambert",
+                "expected at least one albedo (0 for the pure lobes)",
+            ));
+        }
+        for (i, f) in m.family.iter().enumerate() {
+            let key = format!("material.family[{i}]");
+            const MODELS: [&str; 5] = ["ggx", "beckmann", "ct", "ward", "blinn"];
+            if !MODELS.contains(&f.model.as_str()) {
+                return Err(Error::new(
+                    format!("{key}.model"),
+                    format!(
+                        "unknown model '{}' (expected one of: {})",
+                        f.model,
+                        MODELS.join(", ")
+                    ),
+                ));
+            }
+            check_ranges(&key, &f.params, &f.log)?;
+        }
+        let c = &self.compression;
+        for (k, v) in [
+            ("compression.material_energy", c.material_energy),
+            ("compression.geometry_energy", c.geometry_energy),
+        ] {
+            if !(v > 0.0 && v <= 1.0) {
+                return Err(Error::new(
+                    k,
+                    format!("expected a fraction in (0, 1], got {v}"),
+                ));
+            }
+        }
+        if !(c.cx_error > 0.0 && c.cx_error < 1.0) {
+            return Err(Error::new(
+                "compression.cx_error",
+                format!("expected a fraction in (0, 1), got {}", c.cx_error),
+            ));
+        }
+        if c.cx_method != "pivoted-qr" && c.cx_method != "leverage" {
+            return Err(Error::new(
+                "compression.cx_method",
+                format!(
+                    "expected \"pivoted-qr\" or \"leverage\", got \"{}\"",
+                    c.cx_method
+                ),
+            ));
+        }
+        pos("compression.max_rank", c.max_rank, 1)?;
+        pos("compression.stream_chunk", c.stream_chunk, 1)?;
+        Ok(())
+    }
+
+    /// Number of geometry items.
+    pub fn geometry_count(&self) -> usize {
+        self.geometry.family.iter().map(|f| f.count).sum()
+    }
+
+    /// Canonical TOML of the profile (stored in the library; its hash names the cache entry).
+    pub fn canonical(&self) -> String {
+        toml::to_string(self).unwrap_or_default()
+    }
+
+    /// Short hash of the canonical profile.
+    pub fn hash(&self) -> String {
+        format!(
+            "{:016x}",
+            xxhash_rust::xxh3::xxh3_64(self.canonical().as_bytes())
+        )
+    }
+}
+
+fn check_ranges(key: &str, params: &BTreeMap<String, Range2>, log: &[String]) -> Result<()> {
+    for (k, [lo, hi]) in params {
+        if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
+            return Err(Error::new(
+                format!("{key}.params.{k}"),
+                format!("expected [lo, hi] with lo <= hi, got [{lo}, {hi}]"),
+            ));
+        }
+    }
+    for k in log {
+        match params.get(k) {
+            Some([lo, _]) if *lo > 0.0 => {}
+            Some(_) => {
+                return Err(Error::new(
+                    format!("{key}.log"),
+                    format!("'{k}' is log-sampled, so its range must be > 0"),
+                ))
+            }
+            None => {
+                return Err(Error::new(
+                    format!("{key}.log"),
+                    format!("'{k}' has no range in params"),
+                ))
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A TOML parse error with the file, the key path and the expectation.
+pub fn toml_error(ctx: &str, e: &toml::de::Error) -> Error {
+    let msg = e.message().to_string();
+    let loc = match e.span() {
+        Some(s) => format!(" (at byte {})", s.start),
+        None => String::new(),
+    };
+    Error::new(ctx, format!("{msg}{loc}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_profiles_load() {
+        for n in ["tiny", "default", "paper"] {
+            let (p, _) = LibraryProfile::load(n).unwrap();
+            assert_eq!(p.name, n);
+            assert!(p.geometry_count() > 0);
+        }
+        let (paper, _) = LibraryProfile::load("paper").unwrap();
+        assert!(
+            paper.geometry_count() >= 164_431,
+            "{}",
+            paper.geometry_count()
+        );
+    }
+
+    #[test]
+    fn bad_profiles_name_the_key() {
+        let (tiny, path) = LibraryProfile::load("tiny").unwrap();
+        let text = std::fs::read_to_string(path).unwrap();
+        let e = LibraryProfile::parse(&text.replace("chunk =", "chunkk ="), "p.toml")
+            .err()
+            .unwrap();
+        assert!(
+            e.to_string().contains("p.toml") && e.to_string().contains("chunkk"),
+            "{e}"
+        );
+        let e = LibraryProfile::parse(&text.replace("normal_grid = ", "normal_grid = -"), "p.toml")
+            .err()
+            .unwrap();
+        assert!(e.to_string().contains("p.toml"), "{e}");
+        let bad = tiny
+            .canonical()
+            .replace("cx_method = \"pivoted-qr\"", "cx_method = \"svd\"");
+        let e = LibraryProfile::parse(&bad, "p.toml").err().unwrap();
+        assert!(e.to_string().contains("compression.cx_method"), "{e}");
+        let e = LibraryProfile::load("huge").err().unwrap();
+        assert!(e.to_string().contains("tiny"), "{e}");
+    }
+}

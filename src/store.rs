@@ -1,0 +1,467 @@
+//! Library files on disk: self-describing, checksummed, memory-mappable array files.
+//!
+//! An array file is `MAGIC` (8 bytes, `BSCLARR\x01`), the header length (`u32`, little endian),
+//! a JSON header padded with spaces so the data starts at a multiple of 64 bytes, then the raw
+//! little-endian data. The header names the array, its element type, its shape (row-major) and the
+//! xxh3-128 checksum of the data, so a file can be checked on its own; the library manifest repeats
+//! the checksums. Files are written to a temporary file and renamed ([`crate::atomic_write`]);
+//! large arrays are streamed ([`ArrayWriter`]) and their checksum patched in before the rename.
+//! Opening maps the file ([`memmap2`]) and checks magic, version, name, type, shape, length and
+//! (when asked) the checksum: a corrupted, truncated or mismatched file is an error naming it.
+
+use crate::error::{Error, Result};
+use memmap2::Mmap;
+use serde::{Deserialize, Serialize};
+use std::fs::File;
+use std::io::{Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use xxhash_rust::xxh3::Xxh3;
+
+pub const MAGIC: &[u8; 8] = b"BSCLARR\x01";
+pub const ARRAY_VERSION: u32 = 1;
+const ALIGN: usize = 64;
+const EMPTY_SUM: &str = "00000000000000000000000000000000";
+
+/// Element types of array files.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Dtype {
+    F16,
+    F32,
+    F64,
+    U32,
+}
+
+impl Dtype {
+    pub fn size(self) -> usize {
+        match self {
+            Dtype::F16 => 2,
+            Dtype::F32 | Dtype::U32 => 4,
+            Dtype::F64 => 8,
+        }
+    }
+}
+
+/// The JSON header of an array file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ArrayHeader {
+    pub format: String,
+    pub version: u32,
+    pub name: String,
+    pub dtype: Dtype,
+    pub shape: Vec<usize>,
+    /// xxh3-128 of the data bytes, 32 hex digits.
+    pub checksum: String,
+}
+
+impl ArrayHeader {
+    pub fn len(&self) -> usize {
+        self.shape.iter().product()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    pub fn data_bytes(&self) -> usize {
+        self.len() * self.dtype.size()
+    }
+}
+
+fn header_bytes(h: &ArrayHeader) -> Result<Vec<u8>> {
+    let json = serde_json::to_string(h)
+        .map_err(|e| Error::new(&h.name, format!("cannot encode the array header: {e}")))?;
+    let mut len = json.len();
+    while (12 + len) % ALIGN != 0 {
+        len += 1;
+    }
+    let mut out = Vec::with_capacity(12 + len);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&(len as u32).to_le_bytes());
+    out.extend_from_slice(json.as_bytes());
+    out.resize(12 + len, b' ');
+    Ok(out)
+}
+
+/// The checksum of `bytes` as 32 hex digits.
+pub fn checksum(bytes: &[u8]) -> String {
+    format!("{:032x}", xxhash_rust::xxh3::xxh3_128(bytes))
+}
+
+/// Write a whole array held in memory (atomically). `data` is the little-endian element bytes.
+pub fn write_array(
+    path: &Path,
+    name: &str,
+    dtype: Dtype,
+    shape: &[usize],
+    data: &[u8],
+) -> Result<()> {
+    let h = ArrayHeader {
+        format: "biscale-array".into(),
+        version: ARRAY_VERSION,
+        name: name.into(),
+        dtype,
+        shape: shape.to_vec(),
+        checksum: checksum(data),
+    };
+    if h.data_bytes() != data.len() {
+        return Err(Error::new(
+            path.display().to_string(),
+            format!(
+                "array '{name}': {} bytes given for shape {shape:?} of {dtype:?}",
+                data.len()
+            ),
+        ));
+    }
+    let head = header_bytes(&h)?;
+    crate::atomic_write::write_with(path, |w| {
+        w.write_all(&head)?;
+        w.write_all(data)
+    })
+}
+
+/// `f32` values as little-endian bytes.
+pub fn f32_bytes(v: &[f32]) -> &[u8] {
+    bytemuck::cast_slice(v)
+}
+
+/// A streamed array file: data appended in pieces, checksum patched into the header at the end,
+/// then renamed into place. Dropped without [`ArrayWriter::finish`], it leaves nothing behind.
+pub struct ArrayWriter {
+    path: PathBuf,
+    tmp: PathBuf,
+    file: Option<std::io::BufWriter<File>>,
+    header: ArrayHeader,
+    hasher: Xxh3,
+    written: usize,
+}
+
+impl ArrayWriter {
+    pub fn create(path: &Path, name: &str, dtype: Dtype, shape: &[usize]) -> Result<Self> {
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, "create the directory", e))?;
+        }
+        let header = ArrayHeader {
+            format: "biscale-array".into(),
+            version: ARRAY_VERSION,
+            name: name.into(),
+            dtype,
+            shape: shape.to_vec(),
+            checksum: EMPTY_SUM.into(),
+        };
+        let fname = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let tmp = path.with_file_name(format!(".{fname}.tmp-{}", std::process::id()));
+        let f = File::create(&tmp).map_err(|e| Error::io(&tmp, "create", e))?;
+        let mut w = std::io::BufWriter::with_capacity(1 << 20, f);
+        w.write_all(&header_bytes(&header)?)
+            .map_err(|e| Error::io(&tmp, "write", e))?;
+        Ok(ArrayWriter {
+            path: path.to_path_buf(),
+            tmp,
+            file: Some(w),
+            header,
+            hasher: Xxh3::new(),
+            written: 0,
+        })
+    }
+
+    /// Append element bytes.
+    pub fn write(&mut self, bytes: &[u8]) -> Result<()> {
+        self.hasher.update(bytes);
+        self.written += bytes.len();
+        match self.file.as_mut() {
+            Some(w) => w
+                .write_all(bytes)
+                .map_err(|e| Error::io(&self.tmp, "write", e)),
+            None => Err(Error::new(
+                self.path.display().to_string(),
+                "writer already finished",
+            )),
+        }
+    }
+
+    /// Check the length, patch the checksum, flush to disk and rename into place.
+    pub fn finish(mut self) -> Result<String> {
+        if self.written != self.header.data_bytes() {
+            return Err(Error::new(
+                self.path.display().to_string(),
+                format!(
+                    "array '{}': wrote {} bytes, the shape {:?} needs {}",
+                    self.header.name,
+                    self.written,
+                    self.header.shape,
+                    self.header.data_bytes()
+                ),
+            ));
+        }
+        let sum = format!("{:032x}", self.hasher.digest128());
+        self.header.checksum = sum.clone();
+        let head = header_bytes(&self.header)?;
+        let w = self.file.take().ok_or_else(|| {
+            Error::new(self.path.display().to_string(), "writer already finished")
+        })?;
+        let io = |e: std::io::Error| Error::io(&self.tmp, "write", e);
+        let mut f = w.into_inner().map_err(|e| io(e.into_error()))?;
+        f.seek(SeekFrom::Start(0)).map_err(io)?;
+        f.write_all(&head).map_err(io)?;
+        f.sync_all().map_err(io)?;
+        std::fs::rename(&self.tmp, &self.path)
+            .map_err(|e| Error::io(&self.path, "rename the finished temporary file onto", e))?;
+        Ok(sum)
+    }
+}
+
+impl Drop for ArrayWriter {
+    fn drop(&mut self) {
+        if self.file.is_some() {
+            self.file = None;
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}
+
+/// An open (memory-mapped) array file.
+pub struct ArrayFile {
+    pub path: PathBuf,
+    pub header: ArrayHeader,
+    map: Mmap,
+    offset: usize,
+}
+
+/// What the caller expects of an array file; `None` accepts anything.
+#[derive(Debug, Clone, Default)]
+pub struct Expect<'a> {
+    pub name: Option<&'a str>,
+    pub dtype: Option<Dtype>,
+    pub shape: Option<&'a [usize]>,
+    /// Verify the data checksum (reads every byte once).
+    pub verify: bool,
+}
+
+impl ArrayFile {
+    pub fn open(path: &Path, expect: &Expect) -> Result<Self> {
+        let ctx = path.display().to_string();
+        let bad = |m: String| Error::new(ctx.clone(), m);
+        let f = File::open(path).map_err(|e| Error::io(path, "open the library array", e))?;
+        // SAFETY: the map is read-only; library files are written once (temporary + rename) and
+        // never modified in place, so the mapped bytes do not change under us.
+        let map = unsafe { Mmap::map(&f) }.map_err(|e| Error::io(path, "memory-map", e))?;
+        if map.len() < 12 || &map[..8] != MAGIC {
+            return Err(bad(
+                "not a biscale array file (bad magic bytes); the library is corrupted — rebuild it"
+                    .into(),
+            ));
+        }
+        let hlen = u32::from_le_bytes([map[8], map[9], map[10], map[11]]) as usize;
+        if 12 + hlen > map.len() {
+            return Err(bad(format!(
+                "truncated: the header needs {} bytes, the file has {}",
+                12 + hlen,
+                map.len()
+            )));
+        }
+        let header: ArrayHeader = serde_json::from_slice(map[12..12 + hlen].trim_ascii_end())
+            .map_err(|e| bad(format!("unreadable array header: {e}")))?;
+        if header.format != "biscale-array" || header.version != ARRAY_VERSION {
+            return Err(bad(format!(
+                "array format '{}' version {} (this biscale reads biscale-array version {ARRAY_VERSION})",
+                header.format, header.version
+            )));
+        }
+        if let Some(n) = expect.name {
+            if header.name != n {
+                return Err(bad(format!(
+                    "holds array '{}', expected '{n}'",
+                    header.name
+                )));
+            }
+        }
+        if let Some(d) = expect.dtype {
+            if header.dtype != d {
+                return Err(bad(format!(
+                    "element type {:?}, expected {d:?}",
+                    header.dtype
+                )));
+            }
+        }
+        if let Some(s) = expect.shape {
+            if header.shape != s {
+                return Err(bad(format!(
+                    "shape {:?}, expected {s:?} (built with other settings?)",
+                    header.shape
+                )));
+            }
+        }
+        let offset = 12 + hlen;
+        let want = offset + header.data_bytes();
+        if map.len() != want {
+            return Err(bad(format!(
+                "{} : the file has {} bytes, its header promises {want} — truncated or corrupted; rebuild",
+                if map.len() < want { "truncated" } else { "too long" },
+                map.len()
+            )));
+        }
+        let file = ArrayFile {
+            path: path.to_path_buf(),
+            header,
+            map,
+            offset,
+        };
+        if expect.verify {
+            file.verify()?;
+        }
+        Ok(file)
+    }
+
+    /// Check the data against the header's checksum.
+    pub fn verify(&self) -> Result<()> {
+        let got = checksum(self.bytes());
+        if got != self.header.checksum {
+            return Err(Error::new(
+                self.path.display().to_string(),
+                format!(
+                    "checksum mismatch (file {got}, header {}): the data is corrupted; rebuild the library",
+                    self.header.checksum
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    pub fn bytes(&self) -> &[u8] {
+        &self.map[self.offset..]
+    }
+
+    fn typed<T: bytemuck::Pod>(&self, d: Dtype) -> Result<&[T]> {
+        if self.header.dtype != d {
+            return Err(Error::new(
+                self.path.display().to_string(),
+                format!("element type {:?}, expected {d:?}", self.header.dtype),
+            ));
+        }
+        bytemuck::try_cast_slice(self.bytes()).map_err(|e| {
+            Error::new(
+                self.path.display().to_string(),
+                format!("misaligned data: {e}"),
+            )
+        })
+    }
+
+    pub fn f32s(&self) -> Result<&[f32]> {
+        self.typed(Dtype::F32)
+    }
+    pub fn f64s(&self) -> Result<&[f64]> {
+        self.typed(Dtype::F64)
+    }
+    pub fn u32s(&self) -> Result<&[u32]> {
+        self.typed(Dtype::U32)
+    }
+    pub fn f16s(&self) -> Result<&[half::f16]> {
+        self.typed(Dtype::F16)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn dir(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("biscale-store-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    #[test]
+    fn round_trip_and_streamed_equals_whole() {
+        let d = dir("rt");
+        let v: Vec<f32> = (0..1000).map(|i| i as f32 * 0.5).collect();
+        write_array(&d.join("a.bsa"), "a", Dtype::F32, &[10, 100], f32_bytes(&v)).unwrap();
+        let mut w = ArrayWriter::create(&d.join("b.bsa"), "a", Dtype::F32, &[10, 100]).unwrap();
+        for c in v.chunks(77) {
+            w.write(f32_bytes(c)).unwrap();
+        }
+        w.finish().unwrap();
+        let a = std::fs::read(d.join("a.bsa")).unwrap();
+        let b = std::fs::read(d.join("b.bsa")).unwrap();
+        assert_eq!(a, b);
+        let f = ArrayFile::open(
+            &d.join("a.bsa"),
+            &Expect {
+                verify: true,
+                shape: Some(&[10, 100]),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(f.f32s().unwrap(), &v[..]);
+        assert_eq!(f.offset % ALIGN, 0);
+    }
+
+    #[test]
+    fn corruption_truncation_and_mismatch_are_named_errors() {
+        let d = dir("bad");
+        let p = d.join("a.bsa");
+        let v: Vec<f32> = (0..256).map(|i| i as f32).collect();
+        write_array(&p, "gamma", Dtype::F32, &[256], f32_bytes(&v)).unwrap();
+        let e = ArrayFile::open(
+            &p,
+            &Expect {
+                name: Some("coords"),
+                ..Default::default()
+            },
+        )
+        .err()
+        .unwrap();
+        assert!(
+            e.to_string().contains("a.bsa") && e.to_string().contains("expected 'coords'"),
+            "{e}"
+        );
+        let e = ArrayFile::open(
+            &p,
+            &Expect {
+                shape: Some(&[255]),
+                ..Default::default()
+            },
+        )
+        .err()
+        .unwrap();
+        assert!(e.to_string().contains("shape"), "{e}");
+        let mut bytes = std::fs::read(&p).unwrap();
+        let n = bytes.len();
+        bytes[n - 5] ^= 0x40;
+        std::fs::write(&p, &bytes).unwrap();
+        let e = ArrayFile::open(
+            &p,
+            &Expect {
+                verify: true,
+                ..Default::default()
+            },
+        )
+        .err()
+        .unwrap();
+        assert!(e.to_string().contains("checksum mismatch"), "{e}");
+        std::fs::write(&p, &bytes[..n - 100]).unwrap();
+        let e = ArrayFile::open(&p, &Expect::default()).err().unwrap();
+        assert!(e.to_string().contains("truncated"), "{e}");
+        std::fs::write(&p, b"hello").unwrap();
+        let e = ArrayFile::open(&p, &Expect::default()).err().unwrap();
+        assert!(e.to_string().contains("magic"), "{e}");
+    }
+
+    #[test]
+    fn unfinished_writer_leaves_nothing() {
+        let d = dir("drop");
+        {
+            let mut w = ArrayWriter::create(&d.join("x.bsa"), "x", Dtype::F32, &[4]).unwrap();
+            w.write(&[0u8; 8]).unwrap();
+        }
+        assert_eq!(std::fs::read_dir(&d).unwrap().count(), 0);
+        let mut w = ArrayWriter::create(&d.join("x.bsa"), "x", Dtype::F32, &[4]).unwrap();
+        w.write(&[0u8; 8]).unwrap();
+        assert!(w.finish().is_err());
+        assert_eq!(std::fs::read_dir(&d).unwrap().count(), 0);
+    }
+}
