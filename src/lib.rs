@@ -29,15 +29,19 @@ pub mod visibility;
 pub mod vmf;
 
 // Libraries: compression and representatives.
-pub mod lowrank;
-pub mod store;
 pub mod library;
+pub mod lowrank;
+pub mod plot;
+pub mod sampling;
+pub mod solve;
+pub mod store;
+pub mod validate;
 
 // Files and commands.
 pub mod atomic_write;
 // Fabrication: constraint profiles, millability, cost, export.
-pub mod fab;
 pub mod bench;
+pub mod fab;
 pub mod forward;
 pub mod pairs;
 

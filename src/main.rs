@@ -60,6 +60,96 @@ enum Cmd {
         #[arg(long, short = 'q')]
         quiet: bool,
     },
+    /// Find small-scale geometry and/or material that reproduce a target large-scale look.
+    Solve {
+        /// Target look: any material spec, 'ward:ax=0.30,ay=0.08', or a MERL .binary path.
+        #[arg(long, short = 't', default_value = "ward:ax=0.30,ay=0.08")]
+        target: String,
+        /// Brightness edit (factor, Sec. 7).
+        #[arg(long, default_value_t = 1.0)]
+        brightness: f64,
+        /// Contrast edit (Eq. 16).
+        #[arg(long, default_value_t = 1.0)]
+        contrast: f64,
+        /// Target colour r,g,b (average fbar per channel); default: the target material's own.
+        #[arg(long)]
+        colour: Option<String>,
+        /// Fix the material (spec) and solve for the geometry.
+        #[arg(long)]
+        fix_material: Option<String>,
+        /// Fix the geometry (procedural spec or heightmap) and solve for the material.
+        #[arg(long)]
+        fix_geometry: Option<String>,
+        /// Rotations of the geometry tried (geometry and general solvers).
+        #[arg(long, default_value_t = 4)]
+        psi: usize,
+        /// Candidates returned.
+        #[arg(long, short = 'k', default_value_t = 5)]
+        k: usize,
+        /// Items re-ranked with their own library data.
+        #[arg(long, default_value_t = 16)]
+        pool: usize,
+        /// General solver: starts and iterations per start.
+        #[arg(long, default_value_t = 5)]
+        starts: usize,
+        #[arg(long, default_value_t = 4)]
+        iterations: usize,
+        /// Weight of the colour term (Eq. 13), 0..1.
+        #[arg(long, default_value_t = 0.0)]
+        beta: f64,
+        /// Final evaluation of the K candidates.
+        #[arg(long, value_enum, default_value = "exact")]
+        final_eval: FinalArg,
+        /// Visually equivalent details: return up to N diverse combinations within --bound.
+        #[arg(long)]
+        veds: Option<usize>,
+        #[arg(long, default_value_t = 0.07)]
+        bound: f64,
+        /// Library directory; default: the cached build of --profile (built on first use).
+        #[arg(long)]
+        library: Option<PathBuf>,
+        #[arg(long, default_value = "default")]
+        profile: String,
+        #[arg(long)]
+        cache_dir: Option<PathBuf>,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+        #[arg(long, short = 'q')]
+        quiet: bool,
+    },
+    /// The paper's Table 1 protocol on random library combinations, and error against run time.
+    Validate {
+        /// Library directory; default: the cached build of --profile.
+        #[arg(long)]
+        library: Option<PathBuf>,
+        #[arg(long, default_value = "default")]
+        profile: String,
+        #[arg(long)]
+        cache_dir: Option<PathBuf>,
+        #[arg(long, default_value_t = 20)]
+        cases: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        #[arg(long, default_value_t = 1)]
+        psi: usize,
+        #[arg(long, default_value_t = 16)]
+        pool: usize,
+        #[arg(long, default_value_t = 3)]
+        k: usize,
+        #[arg(long, default_value_t = 3)]
+        starts: usize,
+        /// Also sweep the geometry solver's accuracy knobs (error against run time).
+        #[arg(long)]
+        sweep: bool,
+        /// Write the sweep as a PNG plot.
+        #[arg(long)]
+        plot: Option<PathBuf>,
+        #[arg(long, short = 'q')]
+        quiet: bool,
+    },
     /// Build, merge, describe and check precomputed libraries of geometries and materials.
     Library {
         #[command(subcommand)]
@@ -70,6 +160,13 @@ enum Cmd {
         #[command(subcommand)]
         what: BenchCmd,
     },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum FinalArg {
+    Exact,
+    Fast,
+    Library,
 }
 
 #[derive(Subcommand)]
@@ -197,6 +294,116 @@ fn main() -> ExitCode {
                     print!("{}", r.csv);
                 }
             })
+        }
+        Cmd::Solve {
+            target,
+            brightness,
+            contrast,
+            colour,
+            fix_material,
+            fix_geometry,
+            psi,
+            k,
+            pool,
+            starts,
+            iterations,
+            beta,
+            final_eval,
+            veds,
+            bound,
+            library,
+            profile,
+            cache_dir,
+            seed,
+            json,
+            quiet,
+        } => colour
+            .as_deref()
+            .map(biscale::solve::look::parse_colour)
+            .transpose()
+            .and_then(|colour| {
+                use biscale::solve::{Final, SolveOptions};
+                biscale::solve::job::run(&biscale::solve::job::SolveJob {
+                    target,
+                    edits: biscale::solve::look::Edits {
+                        brightness,
+                        contrast,
+                    },
+                    colour,
+                    fix_material,
+                    fix_geometry,
+                    options: SolveOptions {
+                        k: k.max(1),
+                        pool: pool.max(1),
+                        psi: psi.max(1),
+                        beta,
+                        final_eval: match final_eval {
+                            FinalArg::Exact => Final::Exact,
+                            FinalArg::Fast => Final::Fast,
+                            FinalArg::Library => Final::Library,
+                        },
+                        sampling: biscale::sampling::SamplingConfig {
+                            seed,
+                            ..Default::default()
+                        },
+                        ..SolveOptions::default()
+                    },
+                    general: biscale::solve::general::GeneralOptions {
+                        starts: starts.max(1),
+                        max_iterations: iterations.max(1),
+                        seed,
+                        start_material: None,
+                    },
+                    veds: veds.map(|n| (n.max(1), bound)),
+                    library,
+                    profile,
+                    cache_dir,
+                    json,
+                    quiet,
+                })
+            })
+            .map(|t| print!("{t}")),
+        Cmd::Validate {
+            library,
+            profile,
+            cache_dir,
+            cases,
+            seed,
+            psi,
+            pool,
+            k,
+            starts,
+            sweep,
+            plot,
+            quiet,
+        } => {
+            let progress = biscale::library::progress::Progress { quiet };
+            biscale::solve::job::open_library(&library, &profile, &cache_dir, &progress)
+                .and_then(|lib| {
+                    biscale::validate::run(
+                        &lib,
+                        &biscale::validate::ValidateJob {
+                            cases: cases.max(1),
+                            seed,
+                            options: biscale::solve::SolveOptions {
+                                psi: psi.max(1),
+                                pool: pool.max(1),
+                                k: k.max(1),
+                                final_eval: biscale::solve::Final::Fast,
+                                ..Default::default()
+                            },
+                            general: biscale::solve::general::GeneralOptions {
+                                starts: starts.max(1),
+                                seed,
+                                ..Default::default()
+                            },
+                            sweep: sweep || plot.is_some(),
+                            plot,
+                            quiet,
+                        },
+                    )
+                })
+                .map(|t| print!("{t}"))
         }
         Cmd::Library { what } => match what {
             LibraryCmd::Build {

@@ -162,6 +162,28 @@ impl Prefiltered {
         }
     }
 
+    /// A prefiltered material from a stored table (a library column) and the material it was
+    /// built from (needed for narrow lobes, which are evaluated at their centre).
+    pub fn from_table(
+        mat: &Material,
+        cfg: &PrefilterConfig,
+        data: Vec<f32>,
+    ) -> crate::error::Result<Self> {
+        let want = cfg.n_half * KAPPAS.len() * cfg.n_theta_mu * cfg.n_phi_mu;
+        if data.len() != want {
+            return Err(crate::error::Error::new(
+                "prefiltered table",
+                format!("{} entries, the settings need {want}", data.len()),
+            ));
+        }
+        Ok(Prefiltered {
+            cfg: cfg.clone(),
+            material: mat.clone(),
+            data,
+            lk: KAPPAS.iter().map(|k| k.ln_1p()).collect(),
+        })
+    }
+
     fn half_node(nh: usize, i: usize) -> f64 {
         FRAC_PI_2 * i as f64 / (nh - 1) as f64
     }

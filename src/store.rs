@@ -226,6 +226,8 @@ impl Drop for ArrayWriter {
 pub struct ArrayFile {
     pub path: PathBuf,
     pub header: ArrayHeader,
+    /// Whether the data was checked against its checksum when opened.
+    pub verified: bool,
     map: Mmap,
     offset: usize,
 }
@@ -303,20 +305,22 @@ impl ArrayFile {
                 map.len()
             )));
         }
-        let file = ArrayFile {
+        let mut file = ArrayFile {
             path: path.to_path_buf(),
             header,
+            verified: false,
             map,
             offset,
         };
         if expect.verify {
             file.verify()?;
+            file.verified = true;
         }
         Ok(file)
     }
 
     /// Check the data against the header's checksum.
-    pub fn verify(&self) -> Result<()> {
+    pub fn verify(&mut self) -> Result<()> {
         let got = checksum(self.bytes());
         if got != self.header.checksum {
             return Err(Error::new(
@@ -327,6 +331,7 @@ impl ArrayFile {
                 ),
             ));
         }
+        self.verified = true;
         Ok(())
     }
 

@@ -78,7 +78,7 @@ pub fn info(dir: &Path) -> Result<String> {
 
 /// Check every file of a library against its manifest.
 pub fn verify(dir: &Path) -> Result<String> {
-    let lib = Library::open(dir)?;
+    let mut lib = Library::open(dir)?;
     let n = lib.verify_all()?;
     Ok(format!(
         "{}: {n} files match their checksums\n",

@@ -133,6 +133,9 @@ pub fn ensure(profile: &str, cache: Option<&Path>, progress: &Progress) -> Resul
     Library::open(&dir)
 }
 
+/// Arrays at most this large are checksummed whenever a run opens them.
+pub const VERIFY_BYTES: usize = 128 << 20;
+
 /// An opened library: the manifest, and arrays mapped on first use.
 pub struct Library {
     pub dir: PathBuf,
@@ -140,6 +143,8 @@ pub struct Library {
     pub profile: LibraryProfile,
     arrays: Mutex<BTreeMap<String, Arc<ArrayFile>>>,
     reads: Mutex<Vec<String>>,
+    /// Checksum every array on open, whatever its size (`library verify`).
+    pub verify_all_arrays: bool,
 }
 
 impl Library {
@@ -159,10 +164,14 @@ impl Library {
             profile,
             arrays: Mutex::new(BTreeMap::new()),
             reads: Mutex::new(Vec::new()),
+            verify_all_arrays: false,
         })
     }
 
-    /// Map `rel` (a path listed in the manifest), checking header, shape and checksum once.
+    /// Map `rel` (a path listed in the manifest), checking its header, its length and — for arrays
+    /// up to [`VERIFY_BYTES`] — its checksum, once. Larger arrays (the geometry matrix, tens of
+    /// GB at paper scale) are checked by `biscale library verify`; a solve reads only a few of
+    /// their columns.
     pub fn array(&self, rel: &str) -> Result<Arc<ArrayFile>> {
         if let Some(a) = self.arrays.lock().ok().and_then(|m| m.get(rel).cloned()) {
             return Ok(a);
@@ -240,7 +249,8 @@ impl Library {
     }
 
     /// Check every file against the manifest (reads everything).
-    pub fn verify_all(&self) -> Result<usize> {
+    pub fn verify_all(&mut self) -> Result<usize> {
+        self.verify_all_arrays = true;
         for e in &self.manifest.files {
             if e.path.ends_with(".json") {
                 let _: serde_json::Value = self.json(&e.path)?;

@@ -1,0 +1,184 @@
+//! The general solver (Sec. 4.3): geometry and material both unknown. From a start (a given or
+//! seeded random material), alternate the material-fixed geometry solve and the geometry-fixed
+//! material solve, each returning its best, until a (geometry, rotation, material) repeats or the
+//! iteration limit; several starts; the best distinct combinations of all starts are evaluated
+//! with the final evaluator.
+
+use super::{
+    exact_values, library_heightfield, Candidate, Final, Look, SolveOptions, SolveResult,
+    SolveStats,
+};
+use crate::error::{Error, Result};
+use crate::library::Library;
+use crate::material::{parse_material, Material};
+use crate::rng::Rng;
+use std::time::Instant;
+
+/// Settings of the alternation.
+#[derive(Debug, Clone)]
+pub struct GeneralOptions {
+    pub starts: usize,
+    pub max_iterations: usize,
+    pub seed: u64,
+    /// Start from this library material (index) instead of random ones (first start only).
+    pub start_material: Option<usize>,
+}
+
+impl Default for GeneralOptions {
+    fn default() -> Self {
+        GeneralOptions {
+            starts: 5,
+            max_iterations: 4,
+            seed: 1,
+            start_material: None,
+        }
+    }
+}
+
+/// Every combination the alternation visited, best first (library-data errors), with the
+/// number of solver calls.
+pub fn explore(
+    lib: &Library,
+    look: &Look,
+    opt: &SolveOptions,
+    g: &GeneralOptions,
+) -> Result<(Vec<Candidate>, SolveStats)> {
+    let mats = lib.material_items()?;
+    if mats.is_empty() {
+        return Err(Error::new(
+            lib.dir.display().to_string(),
+            "the library has no materials",
+        ));
+    }
+    let inner = SolveOptions {
+        final_eval: Final::Library,
+        k: opt.k.max(3),
+        ..opt.clone()
+    };
+    let mut rng = Rng::new(g.seed);
+    let mut seen: Vec<Candidate> = Vec::new();
+    let mut stats = SolveStats::default();
+    for s in 0..g.starts.max(1) {
+        let mut m = match (s, g.start_material) {
+            (0, Some(m)) => m.min(mats.len() - 1),
+            _ => rng.below(mats.len() as u64) as usize,
+        };
+        let mut last: Option<(usize, i64, usize)> = None;
+        for _ in 0..g.max_iterations.max(1) {
+            let mat: Material = parse_material(&mats[m].spec)?;
+            let gr = super::geometry::solve(lib, look, &mat, &mats[m].spec, Some(m), &inner)?;
+            accumulate(&mut stats, &gr.stats);
+            seen.extend(gr.candidates.iter().cloned());
+            let Some(best_g) = gr.candidates.first().cloned() else {
+                break;
+            };
+            let j = best_g.geometry.unwrap_or(0);
+            let hf = library_heightfield(&best_g.geometry_spec)?;
+            let mr = super::material::solve(
+                lib,
+                look,
+                &hf,
+                &best_g.geometry_spec,
+                Some(j),
+                best_g.psi_deg,
+                &inner,
+            )?;
+            accumulate(&mut stats, &mr.stats);
+            seen.extend(mr.candidates.iter().cloned());
+            let Some(best_m) = mr.candidates.first() else {
+                break;
+            };
+            let key = (
+                j,
+                best_g.psi_deg.round() as i64,
+                best_m.material.unwrap_or(0),
+            );
+            if last == Some(key) {
+                stats.notes.push(format!("start {s}: converged"));
+                break;
+            }
+            last = Some(key);
+            m = best_m.material.unwrap_or(m);
+        }
+    }
+    // Distinct combinations, best first.
+    seen.sort_by(|a, b| a.error.total_cmp(&b.error));
+    let mut uniq: Vec<Candidate> = Vec::new();
+    for c in seen {
+        if !uniq.iter().any(|u| {
+            u.geometry == c.geometry
+                && u.material == c.material
+                && (u.psi_deg - c.psi_deg).abs() < 1e-6
+        }) {
+            uniq.push(c);
+        }
+    }
+    Ok((uniq, stats))
+}
+
+fn accumulate(s: &mut SolveStats, o: &SolveStats) {
+    s.search_seconds += o.search_seconds;
+    s.rerank_seconds += o.rerank_seconds;
+    s.items_searched += o.items_searched;
+    s.representatives = s.representatives.max(o.representatives);
+}
+
+/// Evaluate candidates (geometry, rotation, material) with the final evaluator at fresh samples
+/// of the look, and sort them.
+pub fn finalize(
+    lib: &Library,
+    look: &Look,
+    mut cands: Vec<Candidate>,
+    opt: &SolveOptions,
+) -> Result<Vec<Candidate>> {
+    if opt.final_eval == Final::Library {
+        return Ok(cands);
+    }
+    let lights = lib.gamma_layout().lights;
+    let f = look.as_fn();
+    for c in cands.iter_mut() {
+        let psi = c.psi_deg.to_radians();
+        let rotated = |wi, wo| {
+            f(
+                crate::frame::rotate_z(wi, psi),
+                crate::frame::rotate_z(wo, psi),
+            )
+        };
+        let samples = crate::sampling::sample(&lights, &rotated, &opt.sampling);
+        let target = samples.values(&f, psi);
+        let hf = library_heightfield(&c.geometry_spec)?;
+        let mat = parse_material(&c.material_spec)?;
+        let v = match opt.final_eval {
+            Final::Fast => {
+                let pf = crate::prefilter::Prefiltered::build(
+                    &mat,
+                    &super::geometry::prefilter_for(lib),
+                );
+                super::fast_values(&super::bvndf_of(&hf), &pf, &samples)
+            }
+            _ => exact_values(&hf, &[&mat], &samples, opt.exact_samples).remove(0),
+        };
+        c.error = samples.rel_error(&target, &v);
+        c.evaluated_by = opt.final_eval;
+    }
+    cands.sort_by(|a, b| a.error.total_cmp(&b.error));
+    Ok(cands)
+}
+
+/// The general solver: explore, then evaluate the best `k` distinct combinations.
+pub fn solve(
+    lib: &Library,
+    look: &Look,
+    opt: &SolveOptions,
+    g: &GeneralOptions,
+) -> Result<SolveResult> {
+    let (mut cands, mut stats) = explore(lib, look, opt, g)?;
+    cands.truncate(opt.k.max(1));
+    let t = Instant::now();
+    let cands = finalize(lib, look, cands, opt)?;
+    stats.final_seconds = t.elapsed().as_secs_f64();
+    Ok(SolveResult {
+        candidates: cands,
+        stats,
+    })
+}

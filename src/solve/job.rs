@@ -1,0 +1,137 @@
+//! The `biscale solve` job: resolve the target, open (or build) the library, run the solver the
+//! fixed factors call for, and format the answer as a table or JSON. Only the library parts the
+//! solver needs are read, and the log says which.
+
+use super::general::GeneralOptions;
+use super::look::{Edits, Look};
+use super::{Candidate, SolveOptions, SolveResult};
+use crate::error::{Error, Result};
+use crate::library::progress::Progress;
+use crate::library::Library;
+use crate::material::parse_material;
+use std::path::PathBuf;
+
+#[derive(Debug, Clone)]
+pub struct SolveJob {
+    pub target: String,
+    pub edits: Edits,
+    pub colour: Option<[f64; 3]>,
+    /// Fix the material (any material spec); solve for the geometry.
+    pub fix_material: Option<String>,
+    /// Fix the geometry (a procedural spec or heightmap); solve for the material.
+    pub fix_geometry: Option<String>,
+    pub options: SolveOptions,
+    pub general: GeneralOptions,
+    /// Visually equivalent details: how many, and the error bound.
+    pub veds: Option<(usize, f64)>,
+    pub library: Option<PathBuf>,
+    pub profile: String,
+    pub cache_dir: Option<PathBuf>,
+    pub json: bool,
+    pub quiet: bool,
+}
+
+/// Open the library a job names: a directory, or the cached build of a profile.
+pub fn open_library(
+    library: &Option<PathBuf>,
+    profile: &str,
+    cache: &Option<PathBuf>,
+    progress: &Progress,
+) -> Result<Library> {
+    match library {
+        Some(d) => Library::open(d),
+        None => crate::library::ensure(profile, cache.as_deref(), progress),
+    }
+}
+
+pub fn run(job: &SolveJob) -> Result<String> {
+    let progress = Progress { quiet: job.quiet };
+    let look =
+        Look::from_spec(&job.target, job.edits, job.colour).map_err(|e| e.within("--target"))?;
+    if job.fix_material.is_some() && job.fix_geometry.is_some() {
+        return Err(Error::new(
+            "--fix-material / --fix-geometry",
+            "fix at most one of them (fixing both leaves nothing to solve; use `biscale forward`)",
+        ));
+    }
+    let lib = open_library(&job.library, &job.profile, &job.cache_dir, &progress)?;
+    let (mode, result) = if let Some(m) = &job.fix_material {
+        let mat = parse_material(m).map_err(|e| e.within("--fix-material"))?;
+        (
+            "geometry solver (material fixed)",
+            super::geometry::solve(&lib, &look, &mat, m, None, &job.options)?,
+        )
+    } else if let Some(g) = &job.fix_geometry {
+        let hf = crate::heightmap_io::resolve_geometry(g, 10.0, 1.0)
+            .map_err(|e| e.within("--fix-geometry"))?;
+        (
+            "material solver (geometry fixed)",
+            super::material::solve(&lib, &look, &hf, g, None, 0.0, &job.options)?,
+        )
+    } else if let Some((n, bound)) = job.veds {
+        (
+            "visually equivalent details",
+            super::veds::solve(&lib, &look, &job.options, &job.general, n, bound, 0.98)?,
+        )
+    } else {
+        (
+            "general solver",
+            super::general::solve(&lib, &look, &job.options, &job.general)?,
+        )
+    };
+    progress.note(&format!(
+        "solve: {mode}; library {} ('{}'); read: {}",
+        lib.dir.display(),
+        lib.manifest.profile,
+        lib.reads().join(", ")
+    ));
+    let s = &result.stats;
+    progress.note(&format!(
+        "solve: search {:.3} s over {} items via {} representatives, re-rank {:.3} s, final {:.3} s",
+        s.search_seconds, s.items_searched, s.representatives, s.rerank_seconds, s.final_seconds
+    ));
+    if job.json {
+        #[derive(serde::Serialize)]
+        struct Out<'a> {
+            target: &'a str,
+            mode: &'a str,
+            library: String,
+            result: &'a SolveResult,
+        }
+        return serde_json::to_string_pretty(&Out {
+            target: &job.target,
+            mode,
+            library: lib.dir.display().to_string(),
+            result: &result,
+        })
+        .map(|s| s + "\n")
+        .map_err(|e| Error::new("--json", e.to_string()));
+    }
+    Ok(table(&job.target, mode, &result.candidates))
+}
+
+/// A readable table of candidates.
+pub fn table(target: &str, mode: &str, cands: &[Candidate]) -> String {
+    let mut s = format!("target: {target}\nmode: {mode}\n\n| # | error | geometry | rotation | material | colour | search / re-rank error |\n|---|---|---|---|---|---|---|\n");
+    for (i, c) in cands.iter().enumerate() {
+        s.push_str(&format!(
+            "| {} | {:.2} % ({:?}) | {} | {:.1}° | {} | {:.3}, {:.3}, {:.3}{} | {:.2} % / {:.2} % |\n",
+            i + 1,
+            c.error * 100.0,
+            c.evaluated_by,
+            c.geometry_spec,
+            c.psi_deg,
+            c.material_spec,
+            c.colour[0],
+            c.colour[1],
+            c.colour[2],
+            c.colour_shift.map(|s| format!(" (shift {s})")).unwrap_or_default(),
+            c.search_error * 100.0,
+            c.rerank_error * 100.0
+        ));
+    }
+    if cands.is_empty() {
+        s.push_str("| – | no candidate | | | | | |\n");
+    }
+    s
+}

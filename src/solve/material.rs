@@ -1,0 +1,174 @@
+//! The material solver (Sec. 4.2): the geometry is fixed; search the material library.
+//!
+//! The geometry's compact BVNDF gives, at every sample, a few vMF lobes; `fbar` of a material is
+//! then `Σ_c w_c F(κ_c, μ_c)` of its prefiltered table (Eq. 6). That is evaluated for the
+//! representative materials only; every material's value is representatives × CX weights. The
+//! score adds the colour term of Eq. 13: `(1 - β) e² + β |λ̂ - λ|² / |λ̂|²` with `e` the relative
+//! error and `λ` the material's average colour under its best colour shift.
+
+use super::{
+    bvndf_of, exact_values, fast_values, search_errors, smallest, Candidate, Final, Look,
+    SolveOptions, SolveResult, SolveStats,
+};
+use crate::error::Result;
+use crate::heightfield::Heightfield;
+use crate::library::build::prefilter_config;
+use crate::library::Library;
+use crate::material::{parse_material, Material};
+use crate::prefilter::Prefiltered;
+use crate::sampling::sample;
+use rayon::prelude::*;
+use std::time::Instant;
+
+/// The best colour shift of material `m` for a target colour: `(shift index, colour, distance²
+/// relative to |λ̂|²)`.
+fn best_colour(base: [f32; 3], shifts: &[f32], target: Option<[f64; 3]>) -> (usize, [f64; 3], f64) {
+    let own = [base[0] as f64, base[1] as f64, base[2] as f64];
+    let Some(t) = target else {
+        return (0, own, 0.0);
+    };
+    let tn: f64 = t.iter().map(|x| x * x).sum::<f64>().max(1e-12);
+    let mut best = (0, own, f64::INFINITY);
+    for (s, c) in shifts.chunks(3).enumerate() {
+        let col = [
+            own[0] * c[0] as f64,
+            own[1] * c[1] as f64,
+            own[2] * c[2] as f64,
+        ];
+        let d: f64 = (0..3).map(|i| (col[i] - t[i]).powi(2)).sum::<f64>() / tn;
+        if d < best.2 {
+            best = (s, col, d);
+        }
+    }
+    best
+}
+
+/// Solve for the material on the fixed geometry `hf` (rotated by `psi_deg`: the samples are read
+/// in the rotated frame). `geometry_label` names it in the results.
+pub fn solve(
+    lib: &Library,
+    look: &Look,
+    hf: &Heightfield,
+    geometry_label: &str,
+    geometry_index: Option<usize>,
+    psi_deg: f64,
+    opt: &SolveOptions,
+) -> Result<SolveResult> {
+    let mut stats = SolveStats::default();
+    let t0 = Instant::now();
+    let items = lib.material_items()?;
+    let cfg = prefilter_config(&lib.profile);
+    let tlen = lib.manifest.table_len;
+    let tables = lib.array("material/prefiltered.bsa")?;
+    let reps = lib.array("material/representatives.bsa")?;
+    let xs = lib.array("material/x.bsa")?;
+    let colours = lib.array("material/colour.bsa")?;
+    let shifts = lib.array("material/colour-shifts.bsa")?;
+    let (tables, reps, xs, colours, shifts) = (
+        tables.f32s()?,
+        reps.u32s()?,
+        xs.f32s()?,
+        colours.f32s()?,
+        shifts.f32s()?,
+    );
+    let ns = lib.manifest.colours_per_material * 3;
+    let psi = psi_deg.to_radians();
+    let f = look.as_fn();
+    let rotated = |wi, wo| {
+        f(
+            crate::frame::rotate_z(wi, psi),
+            crate::frame::rotate_z(wo, psi),
+        )
+    };
+    let samples = sample(&lib.gamma_layout().lights, &rotated, &opt.sampling);
+    let target = samples.values(&f, psi);
+    let geo = bvndf_of(hf);
+    let prefiltered = |m: usize| -> Result<Prefiltered> {
+        let mat = parse_material(&items[m].spec)?;
+        Prefiltered::from_table(&mat, &cfg, tables[m * tlen..(m + 1) * tlen].to_vec())
+    };
+    let a: Vec<Vec<f64>> = reps
+        .par_iter()
+        .map(|&k| Ok(fast_values(&geo, &prefiltered(k as usize)?, &samples)))
+        .collect::<Result<_>>()?;
+    let e = search_errors(&samples, &target, &a, xs, items.len());
+    let beta = opt.beta.clamp(0.0, 1.0);
+    let score = |m: usize, e: f64| {
+        let (s, col, d) = best_colour(
+            [colours[3 * m], colours[3 * m + 1], colours[3 * m + 2]],
+            &shifts[m * ns..(m + 1) * ns],
+            look.colour,
+        );
+        ((1.0 - beta) * e * e + beta * d, s, col)
+    };
+    let scores: Vec<f64> = e.iter().enumerate().map(|(m, &e)| score(m, e).0).collect();
+    stats.items_searched = items.len();
+    stats.representatives = reps.len();
+    stats.search_seconds = t0.elapsed().as_secs_f64();
+    // Stage 2: each pooled material's own table.
+    let t1 = Instant::now();
+    let pool = smallest(&scores, opt.pool.max(opt.k));
+    let mut reranked: Vec<(f64, f64, usize)> = pool
+        .par_iter()
+        .map(|&m| {
+            let v = fast_values(&geo, &prefiltered(m)?, &samples);
+            let re = samples.rel_error(&target, &v);
+            Ok((score(m, re).0, re, m))
+        })
+        .collect::<Result<_>>()?;
+    reranked.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.2.cmp(&b.2)));
+    reranked.truncate(opt.k.max(1));
+    stats.rerank_seconds = t1.elapsed().as_secs_f64();
+    // Stage 3.
+    let t2 = Instant::now();
+    let mats: Vec<Material> = reranked
+        .iter()
+        .map(|r| parse_material(&items[r.2].spec))
+        .collect::<Result<_>>()?;
+    let finals: Vec<Vec<f64>> = match opt.final_eval {
+        Final::Library => Vec::new(),
+        Final::Exact => {
+            let refs: Vec<&Material> = mats.iter().collect();
+            exact_values(hf, &refs, &samples, opt.exact_samples)
+        }
+        Final::Fast => reranked
+            .iter()
+            .map(|r| Ok(fast_values(&geo, &prefiltered(r.2)?, &samples)))
+            .collect::<Result<_>>()?,
+    };
+    let mut out: Vec<(f64, Candidate)> = reranked
+        .iter()
+        .enumerate()
+        .map(|(i, &(_, re, m))| {
+            let err = finals
+                .get(i)
+                .map(|v| samples.rel_error(&target, v))
+                .unwrap_or(re);
+            let (sc, s, col) = score(m, err);
+            (
+                sc,
+                Candidate {
+                    geometry: geometry_index,
+                    geometry_spec: geometry_label.to_string(),
+                    material: Some(m),
+                    material_spec: items[m].spec.clone(),
+                    psi_deg,
+                    colour_shift: Some(s),
+                    colour: col,
+                    search_error: e[m],
+                    rerank_error: re,
+                    error: err,
+                    evaluated_by: opt.final_eval,
+                },
+            )
+        })
+        .collect();
+    // Sorted by the Eq. 13 score (the error alone when beta = 0).
+    out.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let out: Vec<Candidate> = out.into_iter().map(|x| x.1).collect();
+    stats.final_seconds = t2.elapsed().as_secs_f64();
+    Ok(SolveResult {
+        candidates: out,
+        stats,
+    })
+}

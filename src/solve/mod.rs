@@ -1,0 +1,218 @@
+//! The inverse solvers (paper Sec. 4, 6, 7): from a target look, the library geometry (material
+//! fixed), the library material (geometry fixed), or both, that reproduce it.
+//!
+//! Every solver works in three stages, each cheaper per item and coarser than the next:
+//!
+//! 1. **search** over the whole library through its compressed form: `fbar` of the few
+//!    representatives, combined with every item's CX weights (Eq. 12) — one small matrix product,
+//!    never a pass of evaluations over the library;
+//! 2. **re-rank** a pool of the best items with their own uncompressed library data (the binned
+//!    BVNDF column, or the material's own prefiltered table with the fast evaluator);
+//! 3. **re-evaluate** the best `K` with the fast or the exact evaluator at the same samples, and
+//!    sort by that error.
+//!
+//! Rotations (`psi`) rotate the target instead of the geometry (Sec. 6). Errors are the relative
+//! error of [`crate::sampling`].
+
+pub mod general;
+pub mod geometry;
+pub mod job;
+pub mod look;
+pub mod material;
+pub mod veds;
+
+use crate::bvndf::{BvndfConfig, CompactBvndf};
+use crate::error::Result;
+use crate::exact::ExactEvaluator;
+use crate::frame::{DirPair, Vec3};
+use crate::heightfield::Heightfield;
+use crate::material::Material;
+use crate::prefilter::Prefiltered;
+use crate::sampling::Samples;
+use serde::Serialize;
+
+pub use look::Look;
+
+/// How the final `K` candidates are evaluated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Final {
+    /// Compact BVNDF × prefiltered material (milliseconds per candidate after a build).
+    Fast,
+    /// The exact evaluator (the reference; about a second per candidate at 64²).
+    Exact,
+    /// No third stage: the item's own library data (used inside the general solver's loop).
+    Library,
+}
+
+/// Settings shared by the solvers.
+#[derive(Debug, Clone)]
+pub struct SolveOptions {
+    /// Candidates returned.
+    pub k: usize,
+    /// Items re-ranked with their own uncompressed data (stage 2).
+    pub pool: usize,
+    /// Geometry solver, stage 2: re-rank with a quick compact BVNDF of each pooled geometry and
+    /// the fast evaluator instead of its binned column (slower, far more accurate for glossy
+    /// materials).
+    pub rerank_fast: bool,
+    /// Rotations tried by the geometry solver.
+    pub psi: usize,
+    /// Weight of the colour term (Eq. 13).
+    pub beta: f64,
+    pub final_eval: Final,
+    /// Exact evaluator: view rays per cell side.
+    pub exact_samples: usize,
+    pub sampling: crate::sampling::SamplingConfig,
+}
+
+impl Default for SolveOptions {
+    fn default() -> Self {
+        SolveOptions {
+            k: 5,
+            pool: 16,
+            rerank_fast: true,
+            psi: 1,
+            beta: 0.0,
+            final_eval: Final::Exact,
+            exact_samples: 1,
+            sampling: crate::sampling::SamplingConfig::default(),
+        }
+    }
+}
+
+/// One answer: a geometry (rotated by `psi_deg`), a material and its colour, with its errors.
+#[derive(Debug, Clone, Serialize)]
+pub struct Candidate {
+    pub geometry: Option<usize>,
+    pub geometry_spec: String,
+    pub material: Option<usize>,
+    pub material_spec: String,
+    pub psi_deg: f64,
+    /// Index of the colour shift (0 = the material's own colour), when a library material.
+    pub colour_shift: Option<usize>,
+    /// Average RGB colour `lambda` of the candidate material with its shift.
+    pub colour: [f64; 3],
+    /// Error from the compressed search (stage 1).
+    pub search_error: f64,
+    /// Error from the item's own library data (stage 2).
+    pub rerank_error: f64,
+    /// Error from the final evaluator (stage 3); candidates are sorted by it.
+    pub error: f64,
+    pub evaluated_by: Final,
+}
+
+/// Timings and counts of one solve, for the log and `validate`.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct SolveStats {
+    pub search_seconds: f64,
+    pub rerank_seconds: f64,
+    pub final_seconds: f64,
+    pub items_searched: usize,
+    pub representatives: usize,
+    pub notes: Vec<String>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct SolveResult {
+    pub candidates: Vec<Candidate>,
+    pub stats: SolveStats,
+}
+
+/// The pairs of a sample set as direction pairs in the geometry's frame.
+pub fn dir_pairs(s: &Samples) -> Vec<DirPair> {
+    s.pairs
+        .iter()
+        .map(|&(l, wo)| DirPair {
+            wi: s.lights[l],
+            wo,
+        })
+        .collect()
+}
+
+/// `fbar` of a compact BVNDF with a prefiltered material at every sample.
+pub fn fast_values(geo: &CompactBvndf, mat: &Prefiltered, s: &Samples) -> Vec<f64> {
+    crate::fast::fbar(geo, mat, &dir_pairs(s))
+}
+
+/// The compact BVNDF the solvers use for re-evaluation (the forward model's default grid).
+pub fn bvndf_of(hf: &Heightfield) -> CompactBvndf {
+    CompactBvndf::build(hf, &BvndfConfig::default())
+}
+
+/// A quicker compact BVNDF for re-ranking a pool (a quarter of the rays, half the lobes).
+pub fn quick_bvndf_of(hf: &Heightfield) -> CompactBvndf {
+    CompactBvndf::build(
+        hf,
+        &BvndfConfig {
+            rays: 256,
+            clusters: 8,
+            ..BvndfConfig::default()
+        },
+    )
+}
+
+/// `fbar` of several materials on one geometry with the exact evaluator (shared rays).
+pub fn exact_values(
+    hf: &Heightfield,
+    mats: &[&Material],
+    s: &Samples,
+    rays_per_side: usize,
+) -> Vec<Vec<f64>> {
+    ExactEvaluator::new(hf, rays_per_side).fbar_many(mats, &dir_pairs(s))
+}
+
+/// Indices of the `n` smallest values (ties by index), ascending.
+pub fn smallest(errors: &[f64], n: usize) -> Vec<usize> {
+    let mut idx: Vec<usize> = (0..errors.len())
+        .filter(|&i| errors[i].is_finite())
+        .collect();
+    idx.sort_by(|&a, &b| errors[a].total_cmp(&errors[b]).then(a.cmp(&b)));
+    idx.truncate(n);
+    idx
+}
+
+/// Weighted `A X` errors for every item: `t` target values, `a` the representatives' values per
+/// sample (`[k][sample]`), `x` item-major CX weights (`[item][k]`). Returns relative errors.
+pub fn search_errors(s: &Samples, t: &[f64], a: &[Vec<f64>], x: &[f32], items: usize) -> Vec<f64> {
+    use faer::Mat;
+    let (np, c) = (t.len(), a.len());
+    if c == 0 {
+        return vec![f64::INFINITY; items];
+    }
+    let aw = Mat::<f64>::from_fn(np, c, |p, k| a[k][p] * s.weights[p]);
+    let xm = Mat::<f64>::from_fn(c, items, |k, j| x[j * c + k] as f64);
+    let prod = &aw * &xm;
+    let tw: Vec<f64> = t.iter().zip(&s.weights).map(|(t, w)| t * w).collect();
+    let n2: f64 = tw.iter().map(|v| v * v).sum();
+    (0..items)
+        .map(|j| {
+            let mut d = 0.0;
+            for p in 0..np {
+                let e = tw[p] - prod[(p, j)].max(0.0);
+                d += e * e;
+            }
+            if n2 > 0.0 {
+                (d / n2).sqrt()
+            } else {
+                f64::INFINITY
+            }
+        })
+        .collect()
+}
+
+/// Rotation `i` of `psi` in radians.
+pub fn psi_angle(i: usize, psi: usize) -> f64 {
+    std::f64::consts::TAU * i as f64 / psi.max(1) as f64
+}
+
+/// The heightfield of a library geometry item.
+pub fn library_heightfield(spec: &str) -> Result<Heightfield> {
+    crate::generators::parse_generator(spec)?.build()
+}
+
+/// A unit vector's components, for logs.
+pub fn fmt_dir(w: Vec3) -> String {
+    let (t, p) = crate::frame::angles_of(w);
+    format!("({:.1}°, {:.1}°)", t.to_degrees(), p.to_degrees())
+}
