@@ -1,16 +1,120 @@
 //! Writing files so that a reader never sees half of one: write a temporary file in the same
 //! directory, flush it to disk, then rename it over the destination.
+//!
+//! Temporary names are `.NAME.tmp-HOST-PID-NONCE-COUNT`: the host name (from `/etc/hostname`,
+//! when readable), the process id, a per-process nonce drawn from the clock when the process
+//! first writes, and a per-process counter. Processes that share a process id on a shared volume
+//! (Kubernetes pods are all PID 1) therefore never write the same temporary file, and the file is
+//! created exclusively (`create_new`), so a collision is retried under another name rather than
+//! shared.
 
 use crate::error::{Error, Result};
+use std::fs::File;
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::OnceLock;
 
-fn temp_path(path: &Path) -> PathBuf {
+static COUNTER: AtomicU64 = AtomicU64::new(0);
+
+/// `HOST-PID-NONCE` for this process, computed once.
+fn process_tag() -> &'static str {
+    static TAG: OnceLock<String> = OnceLock::new();
+    TAG.get_or_init(|| {
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or(0);
+        let local = 0u8;
+        let mut seed = Vec::with_capacity(32);
+        seed.extend_from_slice(&nanos.to_le_bytes());
+        seed.extend_from_slice(&std::process::id().to_le_bytes());
+        // The stack address differs between runs under address-space randomisation.
+        seed.extend_from_slice(&(&local as *const u8 as usize).to_le_bytes());
+        let nonce = xxhash_rust::xxh3::xxh3_64(&seed);
+        let host: String = std::fs::read_to_string("/etc/hostname")
+            .unwrap_or_default()
+            .trim()
+            .chars()
+            .filter(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
+            .take(32)
+            .collect();
+        let pid = std::process::id();
+        if host.is_empty() {
+            format!("{pid}-{nonce:016x}")
+        } else {
+            format!("{host}-{pid}-{nonce:016x}")
+        }
+    })
+}
+
+/// A fresh temporary name next to `path`: `.NAME.tmp-HOST-PID-NONCE-COUNT`.
+pub fn temp_path(path: &Path) -> PathBuf {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    path.with_file_name(format!(".{name}.tmp-{}", std::process::id()))
+    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+    path.with_file_name(format!(".{name}.tmp-{}-{n}", process_tag()))
+}
+
+/// Create a new temporary file next to `path` (never one that already exists).
+pub fn create_temp(path: &Path) -> Result<(PathBuf, File)> {
+    let mut last = None;
+    for _ in 0..8 {
+        let tmp = temp_path(path);
+        match File::create_new(&tmp) {
+            Ok(f) => return Ok((tmp, f)),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => last = Some((tmp, e)),
+            Err(e) => return Err(Error::io(&tmp, "create the temporary file", e)),
+        }
+    }
+    match last {
+        Some((tmp, e)) => Err(Error::io(
+            &tmp,
+            "create a temporary file (8 fresh names were all taken)",
+            e,
+        )),
+        None => Err(Error::new(
+            path.display().to_string(),
+            "cannot create a temporary file",
+        )),
+    }
+}
+
+/// Create `path` holding `bytes` unless it already exists: `Ok(true)` if this call created it,
+/// `Ok(false)` if it was there (its contents are left as they are). The bytes go to a temporary
+/// file first, which is then hard-linked to `path`, so of several processes creating the same
+/// file at once exactly one wins, and a reader never sees half of it. On a file system without
+/// hard links, the temporary file is renamed instead (then the last of simultaneous creators
+/// wins).
+pub fn create_exclusive(path: &Path, bytes: &[u8]) -> Result<bool> {
+    if let Some(dir) = path.parent() {
+        if !dir.as_os_str().is_empty() {
+            std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, "create the directory", e))?;
+        }
+    }
+    let (tmp, mut f) = create_temp(path)?;
+    let written = f.write_all(bytes).and_then(|_| f.sync_all());
+    drop(f);
+    if let Err(e) = written {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(Error::io(path, "write", e));
+    }
+    let linked = std::fs::hard_link(&tmp, path);
+    let result = match linked {
+        Ok(()) => Ok(true),
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(false),
+        Err(_) if path.exists() => Ok(false),
+        Err(_) => {
+            return std::fs::rename(&tmp, path).map(|_| true).map_err(|e| {
+                let _ = std::fs::remove_file(&tmp);
+                Error::io(path, "rename the finished temporary file onto", e)
+            });
+        }
+    };
+    let _ = std::fs::remove_file(&tmp);
+    result
 }
 
 /// Write `bytes` to `path` atomically (temporary file + rename).
@@ -22,16 +126,15 @@ pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
 /// temporary file is removed and `path` is left as it was.
 pub fn write_with(
     path: &Path,
-    fill: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> std::io::Result<()>,
+    fill: impl FnOnce(&mut std::io::BufWriter<File>) -> std::io::Result<()>,
 ) -> Result<()> {
     if let Some(dir) = path.parent() {
         if !dir.as_os_str().is_empty() {
             std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, "create the directory", e))?;
         }
     }
-    let tmp = temp_path(path);
+    let (tmp, f) = create_temp(path)?;
     let result = (|| -> std::io::Result<()> {
-        let f = std::fs::File::create(&tmp)?;
         let mut w = std::io::BufWriter::new(f);
         fill(&mut w)?;
         let f = w.into_inner().map_err(|e| e.into_error())?;
@@ -66,6 +169,76 @@ mod tests {
         assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0);
         write_bytes(&p, b"ok").unwrap();
         assert_eq!(std::fs::read(&p).unwrap(), b"ok");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn temporary_names_are_unique_beyond_the_process_id() {
+        let p = Path::new("/some/dir/gamma.bsa");
+        let (a, b) = (temp_path(p), temp_path(p));
+        assert_ne!(a, b);
+        assert_eq!(a.parent(), p.parent());
+        let name = a.file_name().unwrap().to_string_lossy().into_owned();
+        assert!(name.starts_with(".gamma.bsa.tmp-"), "{name}");
+        let pid = std::process::id().to_string();
+        // HOST-PID-NONCE-COUNT (HOST may be absent): the pid is followed by a 16-digit nonce.
+        let parts: Vec<&str> = name.rsplit('-').collect();
+        assert!(parts[0].parse::<u64>().is_ok(), "{name}: no counter");
+        assert!(
+            parts[1].len() == 16 && u64::from_str_radix(parts[1], 16).is_ok(),
+            "{name}: no nonce"
+        );
+        assert_eq!(parts[2], pid, "{name}: no pid");
+    }
+
+    #[test]
+    fn exactly_one_of_simultaneous_exclusive_creators_wins() {
+        let dir = std::env::temp_dir().join(format!("biscale-aw-excl-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let p = dir.join("profile.toml");
+        let wins: Vec<(u8, bool)> = std::thread::scope(|s| {
+            let hs: Vec<_> = (0..8u8)
+                .map(|t| {
+                    let p = &p;
+                    s.spawn(move || (t, create_exclusive(p, &[t; 1000]).unwrap()))
+                })
+                .collect();
+            hs.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        let winners: Vec<u8> = wins.iter().filter(|w| w.1).map(|w| w.0).collect();
+        assert_eq!(winners.len(), 1, "{wins:?}");
+        assert_eq!(std::fs::read(&p).unwrap(), vec![winners[0]; 1000]);
+        assert!(!create_exclusive(&p, b"later").unwrap());
+        assert_eq!(std::fs::read(&p).unwrap(), vec![winners[0]; 1000]);
+        assert_eq!(
+            std::fs::read_dir(&dir).unwrap().count(),
+            1,
+            "temporary files left"
+        );
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn concurrent_writers_to_one_path_never_share_a_temporary_file() {
+        let dir = std::env::temp_dir().join(format!("biscale-aw-conc-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("profile.toml");
+        std::thread::scope(|s| {
+            for t in 0..8u8 {
+                let p = &p;
+                s.spawn(move || {
+                    for _ in 0..20 {
+                        write_bytes(p, &[t; 4096]).unwrap();
+                    }
+                });
+            }
+        });
+        let got = std::fs::read(&p).unwrap();
+        assert_eq!(got.len(), 4096);
+        assert!(got.iter().all(|&b| b == got[0]), "a file mixed two writers");
+        // Only the destination is left.
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
         std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -148,12 +148,7 @@ impl ArrayWriter {
             shape: shape.to_vec(),
             checksum: EMPTY_SUM.into(),
         };
-        let fname = path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        let tmp = path.with_file_name(format!(".{fname}.tmp-{}", std::process::id()));
-        let f = File::create(&tmp).map_err(|e| Error::io(&tmp, "create", e))?;
+        let (tmp, f) = crate::atomic_write::create_temp(path)?;
         let mut w = std::io::BufWriter::with_capacity(1 << 20, f);
         w.write_all(&header_bytes(&header)?)
             .map_err(|e| Error::io(&tmp, "write", e))?;
@@ -300,8 +295,13 @@ impl ArrayFile {
         let want = offset + header.data_bytes();
         if map.len() != want {
             return Err(bad(format!(
-                "{} : the file has {} bytes, its header promises {want} — truncated or corrupted; rebuild",
-                if map.len() < want { "truncated" } else { "too long" },
+                "{}: the file has {} bytes but its header promises {want}; the library is \
+                 corrupted — rebuild it",
+                if map.len() < want {
+                    "truncated"
+                } else {
+                    "too long"
+                },
                 map.len()
             )));
         }
@@ -450,7 +450,18 @@ mod tests {
         assert!(e.to_string().contains("checksum mismatch"), "{e}");
         std::fs::write(&p, &bytes[..n - 100]).unwrap();
         let e = ArrayFile::open(&p, &Expect::default()).err().unwrap();
-        assert!(e.to_string().contains("truncated"), "{e}");
+        let want = format!(
+            "{}: truncated: the file has {} bytes but its header promises {n}; the library is \
+             corrupted — rebuild it",
+            p.display(),
+            n - 100
+        );
+        assert_eq!(e.to_string(), want);
+        let mut long = bytes.clone();
+        long.push(0);
+        std::fs::write(&p, &long).unwrap();
+        let e = ArrayFile::open(&p, &Expect::default()).err().unwrap();
+        assert!(e.to_string().contains(": too long: the file has"), "{e}");
         std::fs::write(&p, b"hello").unwrap();
         let e = ArrayFile::open(&p, &Expect::default()).err().unwrap();
         assert!(e.to_string().contains("magic"), "{e}");

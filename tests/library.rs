@@ -1,5 +1,6 @@
 //! Library builds on the `tiny` profile: byte-identical rebuilds, sharded = one-process, resume
-//! after a kill, corrupted and truncated files, and lazy opening.
+//! after a kill, finished libraries left alone (unless forced), relative texture directories in
+//! sharded builds, corrupted and truncated files, refused directories, and lazy opening.
 
 use biscale::library::build::{build_shard, Shard};
 use biscale::library::profile::LibraryProfile;
@@ -36,7 +37,10 @@ fn data_files(dir: &Path) -> Vec<(String, Vec<u8>)> {
             ));
         }
     }
-    out.push(("profile.toml".into(), std::fs::read(dir.join("profile.toml")).unwrap()));
+    out.push((
+        "profile.toml".into(),
+        std::fs::read(dir.join("profile.toml")).unwrap(),
+    ));
     out
 }
 
@@ -57,25 +61,31 @@ fn same_profile_and_seed_give_identical_files_and_shards_equal_one_process() {
     let (p, base) = tiny();
     let a = fresh("a");
     let b = fresh("b");
-    let m = build_all(&p, &base, &a, &QUIET, false).unwrap();
+    let m = build_all(&p, &base, &a, &QUIET, false, false).unwrap();
     assert_eq!(m.geometries, p.geometry_count());
     assert!(m.geometry.representatives >= 1 && m.material.representatives >= 1);
     // Three shards, built out of order, then merged.
     for i in [2, 0, 1] {
-        build_shard(&p, &base, &b, Shard { index: i, count: 3 }, &QUIET).unwrap();
+        build_shard(&p, &base, &b, Shard { index: i, count: 3 }, false, &QUIET).unwrap();
     }
     merge_shards(&b, &QUIET, false).unwrap();
     let (fa, fb) = (data_files(&a), data_files(&b));
     assert_eq!(fa.len(), fb.len());
     for ((na, ba), (nb, bb)) in fa.iter().zip(&fb) {
         assert_eq!(na, nb);
-        assert!(ba == bb, "{na} differs between one-process and sharded builds");
+        assert!(
+            ba == bb,
+            "{na} differs between one-process and sharded builds"
+        );
     }
     assert_eq!(manifest_without_build(&a), manifest_without_build(&b));
-    assert!(!a.join("chunks").exists(), "chunks are removed after the merge");
+    assert!(
+        !a.join("chunks").exists(),
+        "chunks are removed after the merge"
+    );
     // The same build again, from scratch: identical bytes.
     let c = fresh("c");
-    build_all(&p, &base, &c, &QUIET, false).unwrap();
+    build_all(&p, &base, &c, &QUIET, false, false).unwrap();
     assert_eq!(data_files(&a), data_files(&c));
     for d in [a, b, c] {
         let _ = std::fs::remove_dir_all(d);
@@ -87,7 +97,7 @@ fn an_interrupted_build_resumes_and_a_damaged_chunk_is_rebuilt() {
     let (p, base) = tiny();
     let d = fresh("resume");
     // "Killed" after half the chunks: only shard 0 of 2 exists.
-    let first = build_shard(&p, &base, &d, Shard { index: 0, count: 2 }, &QUIET).unwrap();
+    let first = build_shard(&p, &base, &d, Shard { index: 0, count: 2 }, false, &QUIET).unwrap();
     assert!(first.chunks_built > 0);
     // A merge now names what is missing.
     let e = merge_shards(&d, &QUIET, true).err().unwrap().to_string();
@@ -98,11 +108,11 @@ fn an_interrupted_build_resumes_and_a_damaged_chunk_is_rebuilt() {
     let n = bytes.len();
     bytes[n - 3] ^= 0x11;
     std::fs::write(&chunk, &bytes).unwrap();
-    let rep = build_shard(&p, &base, &d, Shard::ALL, &QUIET).unwrap();
+    let rep = build_shard(&p, &base, &d, Shard::ALL, false, &QUIET).unwrap();
     assert_eq!(rep.chunks_reused, first.chunks_built - 1);
     merge_shards(&d, &QUIET, false).unwrap();
     let clean = fresh("resume-clean");
-    build_all(&p, &base, &clean, &QUIET, false).unwrap();
+    build_all(&p, &base, &clean, &QUIET, false, false).unwrap();
     assert_eq!(data_files(&d), data_files(&clean));
     let _ = std::fs::remove_dir_all(d);
     let _ = std::fs::remove_dir_all(clean);
@@ -112,14 +122,17 @@ fn an_interrupted_build_resumes_and_a_damaged_chunk_is_rebuilt() {
 fn corrupted_truncated_and_foreign_files_are_named_errors_and_opening_is_lazy() {
     let (p, base) = tiny();
     let d = fresh("bad");
-    build_all(&p, &base, &d, &QUIET, false).unwrap();
+    build_all(&p, &base, &d, &QUIET, false, false).unwrap();
     let lib = Library::open(&d).unwrap();
     assert!(lib.reads().is_empty(), "open reads only the manifest");
     let items = lib.geometry_items().unwrap();
     assert_eq!(items.len(), p.geometry_count());
     lib.array("geometry/x.bsa").unwrap();
     let reads = lib.reads().join(" ");
-    assert!(!reads.contains("material/"), "a geometry-only run read {reads}");
+    assert!(
+        !reads.contains("material/"),
+        "a geometry-only run read {reads}"
+    );
 
     // Corrupt one byte of the geometry matrix.
     let g = d.join("geometry/gamma.bsa");
@@ -128,28 +141,166 @@ fn corrupted_truncated_and_foreign_files_are_named_errors_and_opening_is_lazy() 
     let n = bad.len();
     bad[n / 2] ^= 0x5a;
     std::fs::write(&g, &bad).unwrap();
-    let e = Library::open(&d).unwrap().array("geometry/gamma.bsa").err().unwrap().to_string();
+    let e = Library::open(&d)
+        .unwrap()
+        .array("geometry/gamma.bsa")
+        .err()
+        .unwrap()
+        .to_string();
     assert!(e.contains("gamma.bsa") && e.contains("checksum"), "{e}");
     // Truncate it.
     std::fs::write(&g, &good[..n - 1000]).unwrap();
-    let e = Library::open(&d).unwrap().array("geometry/gamma.bsa").err().unwrap().to_string();
+    let e = Library::open(&d)
+        .unwrap()
+        .array("geometry/gamma.bsa")
+        .err()
+        .unwrap()
+        .to_string();
     assert!(e.contains("gamma.bsa") && e.contains("truncated"), "{e}");
     std::fs::write(&g, &good).unwrap();
     // A file from another build (valid on its own, wrong for this manifest).
     let other = fresh("bad-other");
     let mut q = p.clone();
     q.seed = 2;
-    build_all(&q, &base, &other, &QUIET, false).unwrap();
+    build_all(&q, &base, &other, &QUIET, false, false).unwrap();
     std::fs::copy(other.join("geometry/x.bsa"), d.join("geometry/x.bsa")).unwrap();
-    let e = Library::open(&d).unwrap().array("geometry/x.bsa").err().unwrap().to_string();
+    let e = Library::open(&d)
+        .unwrap()
+        .array("geometry/x.bsa")
+        .err()
+        .unwrap()
+        .to_string();
     assert!(e.contains("x.bsa") && e.contains("manifest"), "{e}");
-    // Building another profile into the same directory is refused.
-    let e = build_all(&q, &base, &d, &QUIET, false).err().unwrap().to_string();
+    // Building another profile into the same directory is refused, and leaves no chunks/.
+    let e = build_all(&q, &base, &d, &QUIET, false, false)
+        .err()
+        .unwrap()
+        .to_string();
     assert!(e.contains("another profile"), "{e}");
+    assert!(
+        !d.join("chunks").exists(),
+        "a refused build created chunks/"
+    );
+    let e = build_shard(&q, &base, &d, Shard { index: 1, count: 4 }, true, &QUIET)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("another profile"), "{e}");
+    assert!(
+        !d.join("chunks").exists(),
+        "a refused shard created chunks/"
+    );
+    assert!(
+        d.join("manifest.json").exists(),
+        "a refused forced build removed the manifest"
+    );
     // A damaged manifest.
     std::fs::write(d.join("manifest.json"), b"{\"format\": 3").unwrap();
     let e = Library::open(&d).err().unwrap().to_string();
     assert!(e.contains("manifest.json"), "{e}");
     let _ = std::fs::remove_dir_all(d);
     let _ = std::fs::remove_dir_all(other);
+}
+
+#[test]
+fn a_finished_library_is_not_rebuilt_unless_forced() {
+    let (p, base) = tiny();
+    let d = fresh("finished");
+    let m = build_all(&p, &base, &d, &QUIET, false, false).unwrap();
+    let manifest = std::fs::read(d.join("manifest.json")).unwrap();
+    let files = data_files(&d);
+    // Again: nothing is recomputed (the chunks are gone, so a rebuild would recreate them and
+    // rewrite the manifest's build times).
+    let again = build_all(&p, &base, &d, &QUIET, false, false).unwrap();
+    assert_eq!(again.files, m.files);
+    assert_eq!(std::fs::read(d.join("manifest.json")).unwrap(), manifest);
+    assert!(
+        !d.join("chunks").exists(),
+        "an already-built library was rebuilt"
+    );
+    // A shard build into the finished library does nothing either.
+    let rep = build_shard(&p, &base, &d, Shard { index: 1, count: 3 }, false, &QUIET).unwrap();
+    assert!(rep.already_built);
+    assert_eq!(rep.chunks_built + rep.chunks_reused, 0);
+    assert!(!d.join("chunks").exists());
+    assert_eq!(std::fs::read(d.join("manifest.json")).unwrap(), manifest);
+    // A library missing a file it lists is not finished: it is rebuilt.
+    std::fs::remove_file(d.join("material/x.bsa")).unwrap();
+    build_all(&p, &base, &d, &QUIET, true, false).unwrap();
+    assert!(
+        d.join("chunks").exists(),
+        "the damaged library was not rebuilt"
+    );
+    assert_eq!(data_files(&d), files);
+    std::fs::remove_dir_all(d.join("chunks")).unwrap();
+    // Forced: everything is built again, to the same bytes.
+    let manifest = std::fs::read(d.join("manifest.json")).unwrap();
+    build_all(&p, &base, &d, &QUIET, true, true).unwrap();
+    assert!(
+        d.join("chunks").exists(),
+        "a forced build reused the finished library"
+    );
+    assert_ne!(std::fs::read(d.join("manifest.json")).unwrap(), manifest);
+    assert_eq!(data_files(&d), files);
+    // A forced shard build removes the manifest: the directory is not a finished library again
+    // until the merge.
+    build_shard(&p, &base, &d, Shard { index: 0, count: 2 }, true, &QUIET).unwrap();
+    assert!(!d.join("manifest.json").exists());
+    assert!(Library::open(&d).is_err());
+    build_shard(&p, &base, &d, Shard { index: 1, count: 2 }, false, &QUIET).unwrap();
+    merge_shards(&d, &QUIET, false).unwrap();
+    assert_eq!(data_files(&d), files);
+    let _ = std::fs::remove_dir_all(d);
+}
+
+#[test]
+fn relative_texture_dirs_are_stored_absolute_so_a_sharded_merge_finds_them() {
+    let root = fresh("reltex");
+    let pdir = root.join("profiles");
+    std::fs::create_dir_all(pdir.join("tex")).unwrap();
+    let img =
+        image::GrayImage::from_fn(64, 64, |x, y| image::Luma([((x * 7 + y * 3) % 256) as u8]));
+    img.save(pdir.join("tex").join("stripes.png")).unwrap();
+    let (mut p, _) = tiny();
+    p.name = "reltex".into();
+    // Keep the build small: the texture family only, from the relative directory "tex".
+    p.geometry.family.retain(|f| f.generator == "texture");
+    p.geometry.family[0].builtin_textures = false;
+    p.geometry.family[0].texture_dirs = vec![PathBuf::from("tex")];
+    p.geometry.family[0].count = 2;
+    let text = p.canonical();
+    assert!(text.contains("\"tex\""), "{text}");
+    let ppath = pdir.join("reltex.toml");
+    std::fs::write(&ppath, text).unwrap();
+
+    let (loaded, path) = LibraryProfile::load(ppath.to_str().unwrap()).unwrap();
+    let abs = std::path::absolute(pdir.join("tex")).unwrap();
+    assert_eq!(loaded.geometry.family[0].texture_dirs, vec![abs.clone()]);
+    let base = path.parent().unwrap().to_path_buf();
+    // Shards, then a separate merge, which reads only the stored profile.
+    let lib = root.join("lib");
+    for i in 0..2 {
+        build_shard(
+            &loaded,
+            &base,
+            &lib,
+            Shard { index: i, count: 2 },
+            false,
+            &QUIET,
+        )
+        .unwrap();
+    }
+    let stored = std::fs::read_to_string(lib.join("profile.toml")).unwrap();
+    assert!(stored.contains(&abs.display().to_string()), "{stored}");
+    let m = merge_shards(&lib, &QUIET, false).unwrap();
+    assert_eq!(m.geometries, 2);
+    let items = Library::open(&lib).unwrap().geometry_items().unwrap();
+    let png = abs.join("stripes.png").display().to_string();
+    assert!(items[0].spec.contains(&png), "{items:?}");
+    // The profile as written (relative dirs), built in one process against its own directory,
+    // gives the same library.
+    let one = root.join("one");
+    build_all(&p, &base, &one, &QUIET, false, false).unwrap();
+    assert_eq!(data_files(&lib), data_files(&one));
+    let _ = std::fs::remove_dir_all(root);
 }

@@ -3,8 +3,8 @@
 //! is a set of named tables (`[ball-1mm]`, `[mill-3axis]`, ...) that profiles refer to by name.
 //! Every size is in millimetres and every key says its unit (`diameter_mm`, `feed_mm_per_min`).
 
-use super::tomlfile::{non_negative, parse, positive, read_text, required};
 use crate::error::{Error, Result};
+use crate::tomlfile::{non_negative, parse, positive, read_text, required};
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

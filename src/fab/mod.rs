@@ -18,7 +18,6 @@ pub mod morph;
 pub mod obj;
 pub mod profile;
 pub mod scale;
-pub mod tomlfile;
 
 pub use catalogue::{Catalogue, Machine, StockMaterial, Tool, ToolKind};
 pub use cost::CostReport;

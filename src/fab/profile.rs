@@ -9,8 +9,8 @@
 //! (`CARGO_MANIFEST_DIR`); [`FabPaths::new`] overrides the base directory.
 
 use super::catalogue::{lookup, Catalogue, Machine, StockMaterial, Tool};
-use super::tomlfile::{non_negative, parse, positive, read_text};
 use crate::error::{Error, Result};
+use crate::tomlfile::{non_negative, parse, positive, read_text};
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

@@ -1,13 +1,15 @@
 //! Building a library: items are computed in chunks (the unit of resumption and of sharding),
 //! then merged into whole arrays and compressed.
 //!
-//! `build` computes the chunks of one shard (`--shard i/N` takes chunks `k ≡ i mod N`), skipping
-//! chunks already on disk whose checksum holds, so a killed build resumes where it stopped and
-//! shards can run on different machines over a shared directory. `merge` checks that every chunk
-//! is present, joins them into `geometry/gamma.bsa` and `material/prefiltered.bsa`, compresses
-//! both (material: SVD of the Gram matrix; geometry: streaming randomized SVD), picks
-//! representatives by CX, and writes `manifest.json` last: a directory with a manifest is a
-//! complete library. Every item depends only on the profile, the seed and its index, and every
+//! `build` claims the directory (writes or checks `profile.toml`, with relative texture and MERL
+//! directories made absolute) and computes the chunks of one shard (`--shard i/N` takes chunks
+//! `k ≡ i mod N`), skipping chunks already on disk whose checksum holds, so a killed build
+//! resumes where it stopped and shards can run on different machines over a shared directory. A
+//! directory that already holds the finished library of the profile is left alone unless forced.
+//! `merge` checks that every chunk is present, joins them into `geometry/gamma.bsa` and
+//! `material/prefiltered.bsa`, compresses both (material: SVD of the Gram matrix; geometry:
+//! streaming randomized SVD), picks representatives by CX, and writes `manifest.json` last: a
+//! directory with a manifest is a complete library. Every item depends only on the profile, the seed and its index, and every
 //! reduction has a fixed order, so the same profile and seed give byte-identical array files
 //! whether built in one process or in shards.
 
@@ -16,7 +18,7 @@ use super::items::{
 };
 use super::manifest::{ArrayEntry, CompressionReport, Manifest, StageTimes, MANIFEST_VERSION};
 use super::profile::LibraryProfile;
-use super::progress::Progress;
+use super::progress::{Bar, Progress, Stages};
 use crate::error::{Error, Result};
 use crate::gamma::GammaLayout;
 use crate::generators::parse_generator;
@@ -89,28 +91,42 @@ fn chunk_path(dir: &Path, kind: &str, k: usize) -> PathBuf {
     dir.join("chunks").join(format!("{kind}-{k:06}.bsa"))
 }
 
-/// Check or write `profile.toml`: a directory holds one profile's library.
+/// Check or create `profile.toml`: a directory holds one profile's library. Creates `dir` if
+/// needed, and nothing else. The file is created exclusively, so of several processes claiming an
+/// empty directory at once exactly one writes it and the others compare against it.
 fn claim_dir(dir: &Path, prof: &LibraryProfile) -> Result<()> {
     let path = dir.join("profile.toml");
     let canon = prof.canonical();
-    match std::fs::read_to_string(&path) {
-        Ok(old) if old == canon => Ok(()),
-        Ok(_) => Err(Error::new(
-            path.display().to_string(),
-            format!(
-                "this directory holds a library of another profile (or seed); expected profile '{}' \
-                 with hash {} — use another --out directory or remove this one",
-                prof.name,
-                prof.hash()
-            ),
-        )),
-        Err(_) => crate::atomic_write::write_bytes(&path, canon.as_bytes()),
+    let old = match std::fs::read_to_string(&path) {
+        Ok(old) => old,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            if crate::atomic_write::create_exclusive(&path, canon.as_bytes())? {
+                return Ok(());
+            }
+            std::fs::read_to_string(&path)
+                .map_err(|e| Error::io(&path, "read the library's profile", e))?
+        }
+        Err(e) => return Err(Error::io(&path, "read the library's profile", e)),
+    };
+    if old == canon {
+        return Ok(());
     }
+    Err(Error::new(
+        path.display().to_string(),
+        format!(
+            "this directory holds a library of another profile (or seed); expected profile '{}' \
+             with hash {} — use another --out directory or remove this one",
+            prof.name,
+            prof.hash()
+        ),
+    ))
 }
 
 /// What a shard build did.
 #[derive(Debug, Clone)]
 pub struct BuildReport {
+    /// The directory already held the finished library of this profile: nothing was done.
+    pub already_built: bool,
     pub chunks_built: usize,
     pub chunks_reused: usize,
     pub geometry_seconds: f64,
@@ -133,23 +149,26 @@ fn chunk_ok(path: &Path, shape: &[usize]) -> bool {
 }
 
 /// Build this shard's chunks in `dir` (resuming: valid chunks are kept).
+///
+/// Relative `texture_dirs` / `merl_dirs` of `prof` are resolved against `base` (the profile
+/// file's directory) before `profile.toml` is written, so the stored profile holds absolute
+/// paths and the merge finds the same files. If `dir` already holds the finished library of this
+/// profile (see [`super::finished`]), nothing is done and the report says `already_built`,
+/// unless `force` is set: then the manifest is removed (the directory is no longer a complete
+/// library) and the chunks are built again.
 pub fn build_shard(
     prof: &LibraryProfile,
     base: &Path,
     dir: &Path,
     shard: Shard,
+    force: bool,
     progress: &Progress,
 ) -> Result<BuildReport> {
-    std::fs::create_dir_all(dir.join("chunks"))
-        .map_err(|e| Error::io(dir, "create the library directory", e))?;
-    claim_dir(dir, prof)?;
-    let geos = geometry_items(prof, base)?;
-    let mats = material_items(prof, base)?;
-    let layout = gamma_layout(prof);
-    let rows = layout.rows();
-    let tlen = table_len(prof);
-    let pcfg = prefilter_config(prof);
+    let mut resolved = prof.clone();
+    resolved.resolve_dirs(base)?;
+    let prof = &resolved;
     let mut rep = BuildReport {
+        already_built: false,
         chunks_built: 0,
         chunks_reused: 0,
         geometry_seconds: 0.0,
@@ -157,6 +176,38 @@ pub fn build_shard(
         geometries_built: 0,
         materials_built: 0,
     };
+    if !force && super::finished(dir, prof).is_some() {
+        progress.note(&format!(
+            "library: {} is already built; nothing to do",
+            dir.display()
+        ));
+        rep.already_built = true;
+        return Ok(rep);
+    }
+    // Claim the directory first, so a refused build leaves nothing behind.
+    claim_dir(dir, prof)?;
+    let manifest = dir.join("manifest.json");
+    if manifest.exists() {
+        progress.note(&format!(
+            "library: removing {} ({}); the library is rebuilt",
+            manifest.display(),
+            if force {
+                "forced rebuild"
+            } else {
+                "it does not describe a complete library of this profile"
+            }
+        ));
+        std::fs::remove_file(&manifest)
+            .map_err(|e| Error::io(&manifest, "remove the old manifest", e))?;
+    }
+    std::fs::create_dir_all(dir.join("chunks"))
+        .map_err(|e| Error::io(&dir.join("chunks"), "create the chunk directory", e))?;
+    let geos = geometry_items(prof, base)?;
+    let mats = material_items(prof, base)?;
+    let layout = gamma_layout(prof);
+    let rows = layout.rows();
+    let tlen = table_len(prof);
+    let pcfg = prefilter_config(prof);
     let chunk = prof.chunk;
     let mine = |n: usize| -> Vec<usize> {
         (0..n.div_ceil(chunk))
@@ -335,6 +386,7 @@ impl BlockSource for ItemMatrix<'_> {
 }
 
 /// Join the chunks of `kind` into one array file; returns its checksum.
+#[allow(clippy::too_many_arguments)]
 fn assemble(
     dir: &Path,
     kind: &str,
@@ -344,6 +396,7 @@ fn assemble(
     len: usize,
     chunk: usize,
     out: &Path,
+    bar: &Bar,
 ) -> Result<String> {
     let mut w = ArrayWriter::create(out, name, dtype, &[items, len])?;
     for k in 0..items.div_ceil(chunk) {
@@ -364,6 +417,7 @@ fn assemble(
             ))
         })?;
         w.write(f.bytes())?;
+        bar.inc(1);
     }
     w.finish()
 }
@@ -424,9 +478,16 @@ fn compress(
     prof: &LibraryProfile,
     gram: bool,
     files: &mut Vec<ArrayEntry>,
+    stages: &Stages,
 ) -> Result<CompressionReport> {
     let c = &prof.compression;
     let b = ItemMatrix::new(file);
+    stages.stage(&format!(
+        "{kind} {} ({} × {})",
+        if gram { "SVD" } else { "randomized SVD" },
+        b.rows(),
+        b.cols()
+    ));
     let t = Instant::now();
     let comp = if gram {
         svd_gram(&b, c.material_energy, 4096, false)?
@@ -445,6 +506,7 @@ fn compress(
         )?
     };
     let svd_seconds = t.elapsed().as_secs_f64();
+    stages.stage(&format!("{kind} CX (rank {})", comp.rank));
     let t = Instant::now();
     let method = if c.cx_method == "leverage" {
         CxMethod::Leverage { seed: prof.seed }
@@ -546,7 +608,10 @@ pub fn merge(
     let (rows, tlen) = (layout.rows(), table_len(&prof));
     let mut files = Vec::new();
     let t = Instant::now();
-    progress.note("merge: joining chunks");
+    let bar = progress.bar(
+        (geos.len().div_ceil(prof.chunk) + mats.len().div_ceil(prof.chunk)) as u64,
+        "merge: joining chunks",
+    );
     let gpath = dir.join("geometry/gamma.bsa");
     let sum = assemble(
         dir,
@@ -557,6 +622,7 @@ pub fn merge(
         rows,
         prof.chunk,
         &gpath,
+        &bar,
     )?;
     files.push(ArrayEntry {
         path: "geometry/gamma.bsa".into(),
@@ -573,7 +639,9 @@ pub fn merge(
         tlen,
         prof.chunk,
         &mpath,
+        &bar,
     )?;
+    bar.finish();
     files.push(ArrayEntry {
         path: "material/prefiltered.bsa".into(),
         checksum: sum,
@@ -582,6 +650,8 @@ pub fn merge(
     times.assemble = t.elapsed().as_secs_f64();
 
     // Colours: each BRDF's own average colour and its colour-shift multipliers.
+    let stages = progress.stages("merge");
+    stages.stage("colours");
     let t = Instant::now();
     let lam: Vec<[f64; 3]> = mats
         .par_iter()
@@ -613,16 +683,11 @@ pub fn merge(
     )?;
     times.colours = t.elapsed().as_secs_f64();
 
-    progress.note(&format!("merge: material SVD ({} × {})", tlen, mats.len()));
     let mfile = ArrayFile::open(&mpath, &Expect::default())?;
-    let material = compress(dir, "material", &mfile, &prof, true, &mut files)?;
-    progress.note(&format!(
-        "merge: geometry randomized SVD ({} × {})",
-        rows,
-        geos.len()
-    ));
+    let material = compress(dir, "material", &mfile, &prof, true, &mut files, &stages)?;
     let gfile = ArrayFile::open(&gpath, &Expect::default())?;
-    let geometry = compress(dir, "geometry", &gfile, &prof, false, &mut files)?;
+    let geometry = compress(dir, "geometry", &gfile, &prof, false, &mut files, &stages)?;
+    stages.finish();
     times.compress =
         material.svd_seconds + material.cx_seconds + geometry.svd_seconds + geometry.cx_seconds;
 

@@ -5,7 +5,7 @@ use super::build::{build_shard, Shard};
 use super::manifest::Manifest;
 use super::profile::LibraryProfile;
 use super::progress::Progress;
-use super::{build_all, cache_path, cache_root, merge_shards, Library};
+use super::{build_all, cache_path, cache_root, finished, merge_shards, Library};
 use crate::error::Result;
 use std::path::{Path, PathBuf};
 
@@ -19,10 +19,16 @@ pub struct BuildJob {
     pub shard: Shard,
     pub quiet: bool,
     pub keep_chunks: bool,
+    /// Rebuild even if the directory already holds the finished library of this profile (its
+    /// `manifest.json` matches the profile's hash); without it such a build does nothing and
+    /// says "already built". A forced build removes the manifest first, recomputes every chunk
+    /// and merges again (`--force`).
+    pub force: bool,
 }
 
 /// Build a library (or one shard of it). Returns a summary.
 pub fn build(job: &BuildJob) -> Result<String> {
+    let force = job.force;
     let (prof, ppath) = LibraryProfile::load(&job.profile)?;
     let base = ppath.parent().map(Path::to_path_buf).unwrap_or_default();
     let dir = job
@@ -42,11 +48,30 @@ pub fn build(job: &BuildJob) -> Result<String> {
             String::new()
         }
     ));
+    if !force {
+        if let Some(m) = finished(&dir, &prof) {
+            progress.note(&format!(
+                "library: {} is already built; nothing to do",
+                dir.display()
+            ));
+            return Ok(format!(
+                "already built; nothing to do (the manifest matches profile '{}'; --force rebuilds it)\n{}",
+                prof.name,
+                summary(&dir, &m)
+            ));
+        }
+    }
     if job.shard.count == 1 {
-        let m = build_all(&prof, &base, &dir, &progress, job.keep_chunks)?;
+        let m = build_all(&prof, &base, &dir, &progress, job.keep_chunks, force)?;
         return Ok(summary(&dir, &m));
     }
-    let rep = build_shard(&prof, &base, &dir, job.shard, &progress)?;
+    let rep = build_shard(&prof, &base, &dir, job.shard, force, &progress)?;
+    if rep.already_built {
+        return Ok(format!(
+            "{} is already built; nothing to do\n",
+            dir.display()
+        ));
+    }
     Ok(format!(
         "shard {}/{} of '{}' in {}: {} chunks built ({} geometries in {:.1} s, {} materials in {:.1} s), {} reused.\n\
          When every shard is done: biscale library merge {}\n",
@@ -130,4 +155,40 @@ fn summary(dir: &Path, m: &Manifest) -> String {
         b.peak_rss_mib
     ));
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn building_a_finished_library_does_nothing_unless_forced() {
+        let dir = std::env::temp_dir().join(format!("biscale-cmd-build-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let mut job = BuildJob {
+            profile: "tiny".into(),
+            out: Some(dir.clone()),
+            cache_dir: None,
+            shard: Shard::ALL,
+            quiet: true,
+            keep_chunks: false,
+            force: false,
+        };
+        let first = build(&job).unwrap();
+        assert!(!first.contains("already built"), "{first}");
+        let manifest = std::fs::read(dir.join("manifest.json")).unwrap();
+        let again = build(&job).unwrap();
+        assert!(again.starts_with("already built; nothing to do"), "{again}");
+        job.shard = Shard { index: 2, count: 3 };
+        let shard = build(&job).unwrap();
+        assert!(shard.contains("already built"), "{shard}");
+        assert_eq!(std::fs::read(dir.join("manifest.json")).unwrap(), manifest);
+        assert!(!dir.join("chunks").exists());
+        job.shard = Shard::ALL;
+        job.force = true;
+        let forced = build(&job).unwrap();
+        assert!(!forced.contains("already built"), "{forced}");
+        assert_ne!(std::fs::read(dir.join("manifest.json")).unwrap(), manifest);
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }

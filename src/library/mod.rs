@@ -42,16 +42,23 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-/// Build a whole library into `dir` in this process (all chunks, then the merge).
+/// Build a whole library into `dir` in this process (all chunks, then the merge). `base` is the
+/// profile file's directory: relative `texture_dirs` / `merl_dirs` are resolved against it and
+/// stored absolute. If `dir` already holds the finished library of this profile, it is returned
+/// as it is ("already built; nothing to do"), unless `force` is set.
 pub fn build_all(
     prof: &LibraryProfile,
     base: &Path,
     dir: &Path,
     progress: &Progress,
     keep_chunks: bool,
+    force: bool,
 ) -> Result<Manifest> {
     let t = Instant::now();
-    let rep = build::build_shard(prof, base, dir, Shard::ALL, progress)?;
+    let rep = build::build_shard(prof, base, dir, Shard::ALL, force, progress)?;
+    if rep.already_built {
+        return Manifest::read(dir);
+    }
     let times = StageTimes {
         geometry_seconds: rep.geometry_seconds,
         material_seconds: rep.material_seconds,
@@ -79,7 +86,26 @@ pub fn merge_shards(dir: &Path, progress: &Progress, keep_chunks: bool) -> Resul
     Ok(m)
 }
 
-/// The profile stored in a build directory; relative paths in it resolve against the directory.
+/// The manifest of the finished library in `dir` if it was built from `prof` (its profile hash;
+/// `prof`'s directories already resolved, see [`LibraryProfile::resolve_dirs`]), its
+/// `profile.toml` agrees, and every file it lists is present with the listed size. `None`
+/// otherwise: no manifest, another profile, or a damaged or incomplete directory.
+pub fn finished(dir: &Path, prof: &LibraryProfile) -> Option<Manifest> {
+    if !dir.join("manifest.json").is_file() {
+        return None;
+    }
+    let lib = Library::open(dir).ok()?;
+    let complete = lib.manifest.profile_hash == prof.hash()
+        && lib
+            .manifest
+            .files
+            .iter()
+            .all(|f| std::fs::metadata(dir.join(&f.path)).is_ok_and(|m| m.len() == f.bytes));
+    complete.then_some(lib.manifest)
+}
+
+/// The profile stored in a build directory. A build stores `texture_dirs` / `merl_dirs` as
+/// absolute paths; relative ones (libraries from older builds) resolve against the directory.
 fn profile_of(dir: &Path) -> Result<(LibraryProfile, PathBuf)> {
     let p = dir.join("profile.toml");
     let text = std::fs::read_to_string(&p)
@@ -129,7 +155,7 @@ pub fn ensure(profile: &str, cache: Option<&Path>, progress: &Progress) -> Resul
         dir.display()
     ));
     let base = ppath.parent().map(Path::to_path_buf).unwrap_or_default();
-    build_all(&prof, &base, &dir, progress, false)?;
+    build_all(&prof, &base, &dir, progress, false, false)?;
     Library::open(&dir)
 }
 

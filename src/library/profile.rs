@@ -2,7 +2,8 @@
 //! (which generators, textures and material models, how many of each, over which parameter
 //! ranges), how finely each item is tabulated, and how hard the compression works.
 //!
-//! A profile is a name (a shipped file `profiles/library/<name>.toml`) or a path. Unknown keys,
+//! A profile is a name (a shipped file `profiles/library/<name>.toml`, see [`shipped_dirs`]) or a
+//! path. Unknown keys,
 //! missing keys, wrong types and out-of-range values are errors naming the file and the key.
 
 use crate::error::{Error, Result};
@@ -59,7 +60,8 @@ pub struct GeometryFamily {
     /// Texture families: use the built-in procedural textures.
     #[serde(default)]
     pub builtin_textures: bool,
-    /// Texture families: directories of PNG images (relative to the profile file).
+    /// Texture families: directories of PNG images (relative ones are taken against the profile
+    /// file's directory and stored absolute).
     #[serde(default)]
     pub texture_dirs: Vec<PathBuf>,
 }
@@ -73,7 +75,8 @@ pub struct MaterialSection {
     pub colours: usize,
     /// Lambertian albedos mixed into every analytic lobe (0 = the pure lobe).
     pub lambert: Vec<f64>,
-    /// Directories of MERL `.binary` files (relative to the profile file).
+    /// Directories of MERL `.binary` files (relative ones are taken against the profile file's
+    /// directory and stored absolute).
     #[serde(default)]
     pub merl_dirs: Vec<PathBuf>,
     #[serde(default)]
@@ -120,17 +123,63 @@ pub struct CompressionSection {
     pub stream_chunk: usize,
 }
 
-/// Where shipped library profiles live.
-pub fn shipped_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("profiles")
-        .join("library")
+/// Where shipped library profiles are looked for, in order (the first holding `NAME.toml` wins):
+/// `profiles/library/` of the source tree this binary was built from, `./profiles/library/`
+/// under the current directory, and next to the executable: `<exe dir>/profiles/library/`, then
+/// `profiles/library/` two directories above it (the checkout of a `target/release/biscale`).
+pub fn shipped_dirs() -> Vec<PathBuf> {
+    let mut dirs = vec![Path::new(env!("CARGO_MANIFEST_DIR")).join("profiles/library")];
+    if let Ok(cwd) = std::env::current_dir() {
+        dirs.push(cwd.join("profiles/library"));
+    }
+    if let Some(exe_dir) = std::env::current_exe()
+        .ok()
+        .and_then(|e| e.parent().map(Path::to_path_buf))
+    {
+        dirs.push(exe_dir.join("profiles/library"));
+        if let Some(up2) = exe_dir.parent().and_then(Path::parent) {
+            dirs.push(up2.join("profiles/library"));
+        }
+    }
+    let mut out: Vec<PathBuf> = Vec::new();
+    for d in dirs {
+        if !out.contains(&d) {
+            out.push(d);
+        }
+    }
+    out
 }
 
-/// Names of the shipped library profiles.
-pub fn shipped_names() -> Vec<String> {
-    let mut v: Vec<String> = std::fs::read_dir(shipped_dir())
-        .map(|rd| {
+/// The first of `dirs` holding `NAME.toml`; the error lists every place looked at.
+pub fn find_shipped(name: &str, dirs: &[PathBuf]) -> Result<PathBuf> {
+    let file = format!("{name}.toml");
+    if let Some(f) = dirs.iter().map(|d| d.join(&file)).find(|f| f.is_file()) {
+        return Ok(f);
+    }
+    let names = names_in(dirs);
+    Err(Error::new(
+        "--profile",
+        format!(
+            "no library profile '{name}': looked for {file} in {} (shipped profiles found: {}); \
+             or give a path to a .toml file",
+            dirs.iter()
+                .map(|d| d.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", "),
+            if names.is_empty() {
+                "none".to_string()
+            } else {
+                names.join(", ")
+            }
+        ),
+    ))
+}
+
+fn names_in(dirs: &[PathBuf]) -> Vec<String> {
+    let mut v: Vec<String> = dirs
+        .iter()
+        .filter_map(|d| std::fs::read_dir(d).ok())
+        .flat_map(|rd| {
             rd.filter_map(|e| e.ok())
                 .filter_map(|e| {
                     let p = e.path();
@@ -138,41 +187,83 @@ pub fn shipped_names() -> Vec<String> {
                         .then(|| p.file_stem().map(|s| s.to_string_lossy().into_owned()))
                         .flatten()
                 })
-                .collect()
+                .collect::<Vec<_>>()
         })
-        .unwrap_or_default();
+        .collect();
     v.sort();
+    v.dedup();
     v
+}
+
+/// Names of the shipped library profiles (over every place [`shipped_dirs`] lists).
+pub fn shipped_names() -> Vec<String> {
+    names_in(&shipped_dirs())
+}
+
+/// `d` made absolute: relative paths are taken against `base` (itself made absolute against
+/// the current directory).
+fn absolute_dir(d: &Path, base: &Path, ctx: &str) -> Result<PathBuf> {
+    let joined = if d.is_absolute() {
+        d.to_path_buf()
+    } else {
+        base.join(d)
+    };
+    std::path::absolute(&joined)
+        .map_err(|e| Error::io(&joined, "make the path absolute", e).within(ctx))
 }
 
 impl LibraryProfile {
     /// Load a profile by shipped name (`tiny`, `default`, `paper`) or by path.
+    /// Relative `texture_dirs` and `merl_dirs` are resolved against the profile file's
+    /// directory here, once, so the profile (and the `profile.toml` a build stores) holds
+    /// absolute paths.
     pub fn load(name_or_path: &str) -> Result<(Self, PathBuf)> {
         let p = Path::new(name_or_path);
         let path = if p.extension().is_some_and(|e| e == "toml") || p.components().count() > 1 {
             p.to_path_buf()
         } else {
-            let f = shipped_dir().join(format!("{name_or_path}.toml"));
-            if !f.exists() {
-                return Err(Error::new(
-                    "--profile",
-                    format!(
-                        "no library profile '{name_or_path}' (shipped: {}; or give a path to a .toml file)",
-                        shipped_names().join(", ")
-                    ),
-                ));
-            }
-            f
+            find_shipped(name_or_path, &shipped_dirs())?
         };
         let text = std::fs::read_to_string(&path)
             .map_err(|e| Error::io(&path, "read the library profile", e))?;
-        let prof = Self::parse(&text, &path.display().to_string())?;
+        let ctx = path.display().to_string();
+        let mut prof = Self::parse(&text, &ctx)?;
+        let base = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        prof.resolve_dirs(&base).map_err(|e| e.within(&ctx))?;
         Ok((prof, path))
+    }
+
+    /// Make every relative `texture_dirs` / `merl_dirs` entry absolute, against `base` (the
+    /// profile file's directory). Absolute entries are kept as they are.
+    pub fn resolve_dirs(&mut self, base: &Path) -> Result<()> {
+        for (i, f) in self.geometry.family.iter_mut().enumerate() {
+            for d in f.texture_dirs.iter_mut() {
+                *d = absolute_dir(
+                    d,
+                    base,
+                    format!("geometry.family[{i}].texture_dirs").as_str(),
+                )?;
+            }
+        }
+        for d in self.material.merl_dirs.iter_mut() {
+            *d = absolute_dir(d, base, "material.merl_dirs")?;
+        }
+        Ok(())
+    }
+
+    /// Whether every `texture_dirs` / `merl_dirs` entry is absolute.
+    pub fn dirs_are_absolute(&self) -> bool {
+        self.geometry
+            .family
+            .iter()
+            .flat_map(|f| &f.texture_dirs)
+            .chain(&self.material.merl_dirs)
+            .all(|d| d.is_absolute())
     }
 
     /// Parse and validate profile text; `ctx` names the file in errors.
     pub fn parse(text: &str, ctx: &str) -> Result<Self> {
-        let prof: LibraryProfile = toml::from_str(text).map_err(|e| toml_error(ctx, &e))?;
+        let prof: LibraryProfile = crate::tomlfile::parse(Path::new(ctx), text)?;
         prof.validate().map_err(|e| e.within(ctx))?;
         Ok(prof)
     }
@@ -330,16 +421,6 @@ fn check_ranges(key: &str, params: &BTreeMap<String, Range2>, log: &[String]) ->
     Ok(())
 }
 
-/// A TOML parse error with the file, the key path and the expectation.
-pub fn toml_error(ctx: &str, e: &toml::de::Error) -> Error {
-    let msg = e.message().to_string();
-    let loc = match e.span() {
-        Some(s) => format!(" (at byte {})", s.start),
-        None => String::new(),
-    };
-    Error::new(ctx, format!("{msg}{loc}"))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -381,5 +462,61 @@ mod tests {
         assert!(e.to_string().contains("compression.cx_method"), "{e}");
         let e = LibraryProfile::load("huge").err().unwrap();
         assert!(e.to_string().contains("tiny"), "{e}");
+        assert!(e.to_string().contains("huge.toml"), "{e}");
+        for d in shipped_dirs() {
+            assert!(e.to_string().contains(&d.display().to_string()), "{e}");
+        }
+    }
+
+    #[test]
+    fn shipped_lookup_takes_the_first_directory_holding_the_name() {
+        let root = std::env::temp_dir().join(format!("biscale-shipped-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let (a, b, c) = (root.join("a"), root.join("b"), root.join("c"));
+        for d in [&a, &b, &c] {
+            std::fs::create_dir_all(d).unwrap();
+        }
+        std::fs::write(b.join("x.toml"), "b").unwrap();
+        std::fs::write(c.join("x.toml"), "c").unwrap();
+        std::fs::write(c.join("y.toml"), "c").unwrap();
+        let dirs = vec![a.clone(), b.clone(), c.clone()];
+        assert_eq!(find_shipped("x", &dirs).unwrap(), b.join("x.toml"));
+        assert_eq!(find_shipped("y", &dirs).unwrap(), c.join("y.toml"));
+        let e = find_shipped("z", &dirs).err().unwrap().to_string();
+        for d in &dirs {
+            assert!(e.contains(&d.display().to_string()), "{e}");
+        }
+        assert!(e.contains("z.toml") && e.contains("x, y"), "{e}");
+        // The current directory and the executable's surroundings are searched too.
+        let all = shipped_dirs();
+        let cwd = std::env::current_dir().unwrap().join("profiles/library");
+        assert!(all.contains(&cwd), "{all:?}");
+        let exe = std::env::current_exe().unwrap();
+        let exe_dir = exe.parent().unwrap();
+        let up2 = exe_dir.parent().unwrap().parent().unwrap();
+        assert!(all.contains(&up2.join("profiles/library")), "{all:?}");
+        std::fs::remove_dir_all(&root).ok();
+    }
+
+    #[test]
+    fn relative_dirs_become_absolute_against_the_profile_file() {
+        let (mut p, _) = LibraryProfile::load("tiny").unwrap();
+        assert!(p.dirs_are_absolute());
+        let h = p.hash();
+        p.resolve_dirs(Path::new("/elsewhere")).unwrap();
+        assert_eq!(p.hash(), h, "profiles without directories keep their hash");
+        p.material.merl_dirs = vec!["merl".into(), "/abs/merl".into()];
+        p.geometry.family[0].texture_dirs = vec!["../tex".into()];
+        assert!(!p.dirs_are_absolute());
+        p.resolve_dirs(Path::new("/data/profiles")).unwrap();
+        assert!(p.dirs_are_absolute());
+        assert_eq!(
+            p.material.merl_dirs,
+            vec![
+                PathBuf::from("/data/profiles/merl"),
+                PathBuf::from("/abs/merl")
+            ]
+        );
+        assert!(p.canonical().contains("/data/profiles/merl"));
     }
 }

@@ -1,4 +1,5 @@
-//! Reading the fabrication TOML files (catalogues and profiles) with messages a user can act on.
+//! Reading the TOML files users write (library profiles, scenes, fabrication catalogues and
+//! profiles) with messages a user can act on.
 //!
 //! Files are parsed with serde into structs marked `deny_unknown_fields`. A toml/serde error only
 //! carries a byte span and a message such as `invalid type: string "x", expected f64`; this
