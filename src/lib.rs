@@ -35,10 +35,13 @@ pub mod plot;
 pub mod sampling;
 pub mod solve;
 pub mod store;
+pub mod tomlfile;
 pub mod validate;
 
 // Files and commands.
 pub mod atomic_write;
+pub mod design;
+pub mod render;
 // Fabrication: constraint profiles, millability, cost, export.
 pub mod bench;
 pub mod fab;

@@ -26,6 +26,26 @@ enum MethodArg {
 
 #[derive(Subcommand)]
 enum Cmd {
+    /// The main job: find details that reproduce a target look and that your shop can make,
+    /// and export them (STL, heightmap PNG, summary.json, report) to outputs/<scene>/.
+    #[command(after_help = design_help())]
+    Design {
+        /// Scene TOML (see `biscale design --help` and the user guide); default: built-in scene.
+        scene: Option<PathBuf>,
+        /// Where scene outputs go.
+        #[arg(long, default_value = "outputs")]
+        outputs: PathBuf,
+        /// Replace an existing outputs/<scene>/ (only after the new one is complete).
+        #[arg(long)]
+        force: bool,
+        /// Library directory; default: the cached build of the scene's library_profile.
+        #[arg(long)]
+        library: Option<PathBuf>,
+        #[arg(long)]
+        cache_dir: Option<PathBuf>,
+        #[arg(long, short = 'q')]
+        quiet: bool,
+    },
     /// Large-scale fbar of one small-scale geometry and material at given direction pairs.
     #[command(after_help = forward_help())]
     Forward {
@@ -188,6 +208,9 @@ enum LibraryCmd {
         /// Keep the per-chunk files after the merge.
         #[arg(long)]
         keep_chunks: bool,
+        /// Rebuild even if the directory already holds this finished library.
+        #[arg(long)]
+        force: bool,
         /// No progress bars or log lines.
         #[arg(long, short = 'q')]
         quiet: bool,
@@ -242,6 +265,13 @@ enum BenchCmd {
     },
 }
 
+fn design_help() -> String {
+    format!(
+        "THE BUILT-IN DEFAULT SCENE (copy it to a file and edit it)\n{}",
+        biscale::design::scene::DEFAULT_SCENE
+    )
+}
+
 fn forward_help() -> String {
     let gens: Vec<String> = biscale::generators::list()
         .iter()
@@ -257,6 +287,22 @@ fn forward_help() -> String {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.cmd {
+        Cmd::Design {
+            scene,
+            outputs,
+            force,
+            library,
+            cache_dir,
+            quiet,
+        } => biscale::design::run(&biscale::design::DesignJob {
+            scene,
+            outputs,
+            force,
+            library,
+            cache_dir,
+            quiet,
+        })
+        .map(|t| print!("{t}")),
         Cmd::Forward {
             geometry,
             material,
@@ -412,6 +458,7 @@ fn main() -> ExitCode {
                 cache_dir,
                 shard,
                 keep_chunks,
+                force,
                 quiet,
             } => shard
                 .as_deref()
@@ -425,6 +472,7 @@ fn main() -> ExitCode {
                         shard,
                         quiet,
                         keep_chunks,
+                        force,
                     })
                 })
                 .map(|t| print!("{t}")),

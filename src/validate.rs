@@ -319,7 +319,11 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
         }
         let (me, mt) = (Tally::q(&t.errors, 0.5), Tally::q(&t.times, 0.5));
         points.push((mt, me));
-        let by = if rerank_fast { "quick BVNDF + fast" } else { "binned column" };
+        let by = if rerank_fast {
+            "quick BVNDF + fast"
+        } else {
+            "binned column"
+        };
         out += &format!(
             "| {pool} | {by} | {psi} | {fin:?} | {:.2} % | {:.1} % | {:.1} % | {:.3} s |\n",
             me * 100.0,

@@ -107,7 +107,9 @@ pub fn solve(
     stats.search_seconds = t0.elapsed().as_secs_f64();
     // Stage 2: each pooled material's own table.
     let t1 = Instant::now();
-    let pool = smallest(&scores, opt.pool.max(opt.k));
+    // Re-ranking a material costs milliseconds (its own table, the geometry's lobes), so the
+    // material solver re-ranks four times the pool.
+    let pool = smallest(&scores, (4 * opt.pool).max(opt.k));
     let mut reranked: Vec<(f64, f64, usize)> = pool
         .par_iter()
         .map(|&m| {

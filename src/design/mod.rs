@@ -1,0 +1,409 @@
+//! `biscale design`: the main job. From a scene (a target look, what is fixed, a fabrication
+//! profile, a tile size, a viewing distance), find library details that reproduce the look,
+//! check each against the profile (scale window, millability, feature size, cost), evaluate the
+//! appearance of the surface the tool would actually leave, rank by that plus the weighted cost,
+//! and export the best as watertight STL, 16-bit PNG heightmaps, `summary.json` and a report.
+//!
+//! Only what the scene needs is loaded: a scene that fixes the material never reads the material
+//! library; a scene that exports nothing never builds a mesh. The log says what was read and
+//! built. Output goes to `outputs/<scene>/`, assembled in a temporary directory and renamed into
+//! place, so a failed run leaves no half-written output; an existing output is replaced only
+//! with `--force`.
+
+pub mod report;
+pub mod scene;
+
+use crate::error::{Error, Result};
+use crate::fab::{
+    check_detail, export_detail, load_profile, CheckOptions, Decimation, FabPaths, FabReport,
+};
+use crate::heightfield::Heightfield;
+use crate::library::progress::Progress;
+use crate::material::{parse_material, Material};
+use crate::prefilter::Prefiltered;
+use crate::solve::look::Edits;
+use crate::solve::{bvndf_of, fast_values, Candidate, Final, Look, SolveOptions};
+use scene::Scene;
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Options of a design run besides the scene.
+#[derive(Debug, Clone)]
+pub struct DesignJob {
+    /// Scene file; `None` runs the built-in default.
+    pub scene: Option<PathBuf>,
+    /// Parent of the output directory (`outputs/`).
+    pub outputs: PathBuf,
+    pub force: bool,
+    /// Library directory; default: the cached build of the scene's `library_profile`.
+    pub library: Option<PathBuf>,
+    pub cache_dir: Option<PathBuf>,
+    pub quiet: bool,
+}
+
+/// One ranked detail in `summary.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct DetailSummary {
+    pub rank: usize,
+    pub geometry: String,
+    pub material: String,
+    pub rotation_deg: f64,
+    pub colour: [f64; 3],
+    pub stl: Option<String>,
+    pub heightmap_png: Option<String>,
+    pub heightmap_scale: Option<String>,
+    pub patch_mm: f64,
+    pub tile_mm: [f64; 2],
+    pub tool: Option<String>,
+    pub process: String,
+    pub max_deviation_mm: f64,
+    pub rms_deviation_mm: f64,
+    pub min_feature_mm: Option<f64>,
+    pub cost: crate::fab::CostReport,
+    /// Relative appearance error of the designed surface and of the manufactured one (fast
+    /// evaluator at the solver's samples).
+    pub appearance_error_design: f64,
+    pub appearance_error_made: f64,
+    /// The score ranked by: error_made + cost_weight × weighted cost.
+    pub score: f64,
+    pub triangles: Option<usize>,
+    pub triangles_full: Option<usize>,
+    pub mesh_height_error_mm: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Summary {
+    pub scene: Scene,
+    pub profile: String,
+    pub library: String,
+    pub mode: String,
+    pub candidates_checked: usize,
+    pub rejected: BTreeMap<String, usize>,
+    pub rejections: Vec<(String, String, String)>,
+    pub details: Vec<DetailSummary>,
+    pub log: Vec<String>,
+}
+
+/// Appearance error of `hf` with `mat`, rotated by `psi_deg`, against the look (fast evaluator).
+fn appearance(
+    look: &Look,
+    hf: &Heightfield,
+    pf: &Prefiltered,
+    psi_deg: f64,
+    opt: &SolveOptions,
+    lights: &[crate::frame::Vec3],
+) -> f64 {
+    let f = look.as_fn();
+    let psi = psi_deg.to_radians();
+    let rotated = |wi, wo| {
+        f(
+            crate::frame::rotate_z(wi, psi),
+            crate::frame::rotate_z(wo, psi),
+        )
+    };
+    let s = crate::sampling::sample(lights, &rotated, &opt.sampling);
+    let t = s.values(&f, psi);
+    s.rel_error(&t, &fast_values(&bvndf_of(hf), pf, &s))
+}
+
+/// Run the design job; returns the text summary printed to standard output.
+pub fn run(job: &DesignJob) -> Result<String> {
+    let t0 = Instant::now();
+    let progress = Progress { quiet: job.quiet };
+    let mut log: Vec<String> = Vec::new();
+    let note = |s: String, log: &mut Vec<String>| {
+        progress.note(&format!("design: {s}"));
+        log.push(s);
+    };
+    let scene = match &job.scene {
+        Some(p) => Scene::load(p)?,
+        None => Scene::builtin()?,
+    };
+    let out_dir = job.outputs.join(&scene.name);
+    if out_dir.exists() && !job.force {
+        return Err(Error::new(
+            out_dir.display().to_string(),
+            "already exists; pass --force to replace it, or rename the scene",
+        ));
+    }
+    let profile = load_profile(&scene.profile, &FabPaths::default_paths())
+        .map_err(|e| e.within("scene profile"))?;
+    let edits = Edits {
+        brightness: scene.brightness,
+        contrast: scene.contrast,
+    };
+    let look = Look::from_spec(&scene.target, edits, scene.colour)
+        .map_err(|e| e.within("scene target"))?;
+    note(
+        format!(
+            "scene '{}': target {}, profile {}, tile {}×{} mm",
+            scene.name, scene.target, profile.name, scene.tile_mm[0], scene.tile_mm[1]
+        ),
+        &mut log,
+    );
+    let lib = crate::solve::job::open_library(
+        &job.library,
+        &scene.library_profile,
+        &job.cache_dir,
+        &progress,
+    )?;
+    let opt = SolveOptions {
+        k: scene.candidates,
+        pool: scene.candidates,
+        psi: scene.psi,
+        // The fabrication stage evaluates the designed and the made surface of every feasible
+        // candidate with the fast evaluator; a third solver stage would repeat that.
+        final_eval: Final::Library,
+        sampling: crate::sampling::SamplingConfig {
+            seed: scene.seed,
+            ..Default::default()
+        },
+        ..SolveOptions::default()
+    };
+    let general = crate::solve::general::GeneralOptions {
+        seed: scene.seed,
+        ..Default::default()
+    };
+    let (mode, result, fixed_hf) = if let Some(m) = &scene.fixed_material {
+        let mat = parse_material(m).map_err(|e| e.within("scene fixed_material"))?;
+        (
+            "geometry solver (material fixed)",
+            crate::solve::geometry::solve(&lib, &look, &mat, m, None, &opt)?,
+            None,
+        )
+    } else if let Some(g) = &scene.fixed_geometry {
+        let hf = crate::heightmap_io::resolve_geometry(g, 10.0, 1.0)
+            .map_err(|e| e.within("scene fixed_geometry"))?;
+        let r = crate::solve::material::solve(&lib, &look, &hf, g, None, 0.0, &opt)?;
+        ("material solver (geometry fixed)", r, Some(hf))
+    } else {
+        (
+            "general solver",
+            crate::solve::general::solve(&lib, &look, &opt, &general)?,
+            None,
+        )
+    };
+    note(
+        format!(
+            "{mode}: {} candidates in {:.1} s; library {} read: {}",
+            result.candidates.len(),
+            t0.elapsed().as_secs_f64(),
+            lib.dir.display(),
+            lib.reads().join(", ")
+        ),
+        &mut log,
+    );
+
+    // Fabrication stage: check every candidate, evaluate the made surface, rank.
+    let lights = lib.gamma_layout().lights;
+    let mut rejected: BTreeMap<String, usize> = BTreeMap::new();
+    let mut rejections = Vec::new();
+    let mut ranked: Vec<(f64, Candidate, FabReport, f64, f64, Heightfield, Material)> = Vec::new();
+    let mut prefiltered: BTreeMap<String, Prefiltered> = BTreeMap::new();
+    // One fabrication check per distinct geometry (its rotations share it; a rejected geometry
+    // is counted once).
+    let mut specs: Vec<String> = Vec::new();
+    for c in &result.candidates {
+        if !specs.contains(&c.geometry_spec) {
+            specs.push(c.geometry_spec.clone());
+        }
+    }
+    let t1 = Instant::now();
+    let checks: Vec<(Heightfield, FabReport)> = {
+        use rayon::prelude::*;
+        specs
+            .par_iter()
+            .map(|spec| {
+                let hf = match &fixed_hf {
+                    Some(h) => h.clone(),
+                    None => crate::solve::library_heightfield(spec)?,
+                };
+                let rep = check_detail(
+                    &hf,
+                    &profile,
+                    &CheckOptions {
+                        tile_mm: (scene.tile_mm[0], scene.tile_mm[1]),
+                        patch_mm: None,
+                        viewing_distance_mm: scene.viewing_distance_mm,
+                    },
+                )?;
+                Ok((hf, rep))
+            })
+            .collect::<Result<_>>()?
+    };
+    let checked: BTreeMap<String, (Heightfield, FabReport)> =
+        specs.into_iter().zip(checks).collect();
+    let mut counted: std::collections::BTreeSet<String> = Default::default();
+    for c in &result.candidates {
+        // One detail per geometry: its best rotation (candidates come best first).
+        if !counted.insert(c.geometry_spec.clone()) {
+            continue;
+        }
+        let (hf, rep) = checked[&c.geometry_spec].clone();
+        if !rep.feasible {
+            for r in &rep.rejections {
+                *rejected.entry(r.code.clone()).or_default() += 1;
+                rejections.push((c.geometry_spec.clone(), r.code.clone(), r.message.clone()));
+            }
+            continue;
+        }
+        let mat = parse_material(&c.material_spec)?;
+        let pf = prefiltered
+            .entry(c.material_spec.clone())
+            .or_insert_with(|| {
+                Prefiltered::build(&mat, &crate::solve::geometry::prefilter_for(&lib))
+            });
+        let e_design = appearance(&look, &hf, pf, c.psi_deg, &opt, &lights);
+        let e_made = appearance(&look, &rep.made, pf, c.psi_deg, &opt, &lights);
+        let score = e_made + scene.cost_weight * rep.cost.total;
+        ranked.push((score, c.clone(), rep, e_design, e_made, hf, mat));
+    }
+    ranked.sort_by(|a, b| a.0.total_cmp(&b.0));
+    note(
+        format!(
+            "fabrication: {} candidates ({} distinct geometries) checked in {:.1} s, {} feasible, rejected by reason: {:?}",
+            result.candidates.len(),
+            checked.len(),
+            t1.elapsed().as_secs_f64(),
+            ranked.len(),
+            rejected
+        ),
+        &mut log,
+    );
+
+    // Export into a temporary directory, then rename into place.
+    let tmp = job
+        .outputs
+        .join(format!(".{}.partial-{}", scene.name, std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp).map_err(|e| Error::io(&tmp, "create the output directory", e))?;
+    let outcome = (|| -> Result<Vec<DetailSummary>> {
+        let mut details = Vec::new();
+        let n_export = scene.details.min(ranked.len());
+        if n_export == 0 {
+            note(
+                "no detail exported (details = 0 or none feasible): no mesh built".into(),
+                &mut log,
+            );
+        }
+        for (i, (score, c, rep, e_d, e_m, hf, mat)) in ranked.iter().enumerate() {
+            let rank = i + 1;
+            let export = if i < n_export {
+                let name = format!("detail-{rank}");
+                let dec = match (scene.decimate_max_error_mm, scene.triangle_budget) {
+                    (_, Some(b)) => Some(Decimation::TriangleBudget(b)),
+                    (Some(e), None) => Some(Decimation::MaxErrorMm(e)),
+                    _ => None,
+                };
+                let t = Instant::now();
+                let ex = export_detail(
+                    hf,
+                    &profile,
+                    rep.patch_mm,
+                    (scene.tile_mm[0], scene.tile_mm[1]),
+                    &tmp,
+                    &name,
+                    dec,
+                )?;
+                note(
+                    format!(
+                        "{name}: {} triangles ({} before decimation), built and checked in {:.2} s",
+                        ex.triangles,
+                        ex.triangles_full,
+                        t.elapsed().as_secs_f64()
+                    ),
+                    &mut log,
+                );
+                report::pictures(&tmp, &name, &look, hf, mat, c.psi_deg, &lib)?;
+                Some(ex)
+            } else {
+                None
+            };
+            let rel = |p: &Path| p.file_name().map(|n| n.to_string_lossy().into_owned());
+            details.push(DetailSummary {
+                rank,
+                geometry: c.geometry_spec.clone(),
+                material: c.material_spec.clone(),
+                rotation_deg: c.psi_deg,
+                colour: c.colour,
+                stl: export.as_ref().and_then(|e| rel(&e.stl)),
+                heightmap_png: export.as_ref().and_then(|e| rel(&e.png)),
+                heightmap_scale: export.as_ref().and_then(|e| rel(&e.png_scale)),
+                patch_mm: rep.patch_mm,
+                tile_mm: scene.tile_mm,
+                tool: profile.tool.as_ref().map(|t| t.name.clone()),
+                process: rep.millability.process.clone(),
+                max_deviation_mm: rep.millability.max_deviation_mm,
+                rms_deviation_mm: rep.millability.rms_deviation_mm,
+                min_feature_mm: rep.features.min_feature_mm,
+                cost: rep.cost.clone(),
+                appearance_error_design: *e_d,
+                appearance_error_made: *e_m,
+                score: *score,
+                triangles: export.as_ref().map(|e| e.triangles),
+                triangles_full: export.as_ref().map(|e| e.triangles_full),
+                mesh_height_error_mm: export.as_ref().map(|e| e.max_height_error_mm),
+            });
+        }
+        Ok(details)
+    })();
+    let details = match outcome {
+        Ok(d) => d,
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&tmp);
+            return Err(e);
+        }
+    };
+    let summary = Summary {
+        scene: scene.clone(),
+        profile: profile.name.clone(),
+        library: lib.dir.display().to_string(),
+        mode: mode.into(),
+        candidates_checked: result.candidates.len(),
+        rejected,
+        rejections,
+        details,
+        log: log.clone(),
+    };
+    let finish = || -> Result<()> {
+        let json = serde_json::to_string_pretty(&summary)
+            .map_err(|e| Error::new("summary.json", e.to_string()))?;
+        crate::atomic_write::write_bytes(&tmp.join("summary.json"), json.as_bytes())?;
+        report::write_markdown(&tmp, &summary)?;
+        install(&tmp, &out_dir)
+    };
+    if let Err(e) = finish() {
+        let _ = std::fs::remove_dir_all(&tmp);
+        return Err(e);
+    }
+    Ok(report::text(&summary, &out_dir, t0.elapsed().as_secs_f64()))
+}
+
+/// Move the finished temporary directory to `out`, replacing an older output only after the new
+/// one is complete.
+fn install(tmp: &Path, out: &Path) -> Result<()> {
+    let old = out.with_file_name(format!(
+        ".{}.old-{}",
+        out.file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+        std::process::id()
+    ));
+    let had_old = out.exists();
+    if had_old {
+        std::fs::rename(out, &old)
+            .map_err(|e| Error::io(out, "move the previous output aside", e))?;
+    }
+    if let Err(e) = std::fs::rename(tmp, out) {
+        if had_old {
+            let _ = std::fs::rename(&old, out);
+        }
+        return Err(Error::io(out, "move the finished output into place", e));
+    }
+    if had_old {
+        let _ = std::fs::remove_dir_all(&old);
+    }
+    Ok(())
+}

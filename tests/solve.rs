@@ -1,0 +1,186 @@
+//! Solvers, validation and the design job on the `tiny` library.
+
+use biscale::library::build::Shard;
+use biscale::library::profile::LibraryProfile;
+use biscale::library::progress::Progress;
+use biscale::library::Library;
+use biscale::material::parse_material;
+use biscale::solve::{Final, Look, SolveOptions};
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+fn tiny_library() -> PathBuf {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let d = std::env::temp_dir().join(format!("biscale-solve-lib-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        let (p, path) = LibraryProfile::load("tiny").unwrap();
+        let base = path.parent().unwrap().to_path_buf();
+        biscale::library::build::build_shard(
+            &p,
+            &base,
+            &d,
+            Shard::ALL,
+            false,
+            &Progress { quiet: true },
+        )
+        .unwrap();
+        biscale::library::merge_shards(&d, &Progress { quiet: true }, false).unwrap();
+        d
+    })
+    .clone()
+}
+
+/// The look of library geometry `g` with library material `m` under the fast forward model.
+fn combo(lib: &Library, g: usize, m: usize) -> Look {
+    let gi = lib.geometry_items().unwrap();
+    let mi = lib.material_items().unwrap();
+    let hf = biscale::solve::library_heightfield(&gi[g].spec).unwrap();
+    let geo = biscale::solve::bvndf_of(&hf);
+    let mat = parse_material(&mi[m].spec).unwrap();
+    let pf =
+        biscale::prefilter::Prefiltered::build(&mat, &biscale::solve::geometry::prefilter_for(lib));
+    Look::from_fn(
+        "combo",
+        move |wi, wo| {
+            let mut s = Vec::new();
+            biscale::fast::fbar_one(&geo, &pf, &biscale::frame::DirPair { wi, wo }, &mut s)
+        },
+        None,
+    )
+}
+
+#[test]
+fn geometry_solver_is_deterministic_sorted_and_reads_no_material_arrays() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let look = Look::from_spec("ward:ax=0.3,ay=0.08", Default::default(), None).unwrap();
+    let mat = parse_material("ggx:alpha=0.1,f0=0.9").unwrap();
+    let opt = SolveOptions {
+        k: 3,
+        pool: 6,
+        psi: 2,
+        final_eval: Final::Fast,
+        ..Default::default()
+    };
+    let a = biscale::solve::geometry::solve(&lib, &look, &mat, "ggx", None, &opt).unwrap();
+    let b = biscale::solve::geometry::solve(&lib, &look, &mat, "ggx", None, &opt).unwrap();
+    assert_eq!(a.candidates.len(), 3);
+    for (x, y) in a.candidates.iter().zip(&b.candidates) {
+        assert_eq!(x.geometry, y.geometry);
+        assert_eq!(x.error, y.error);
+        assert!(x.error.is_finite() && x.search_error.is_finite());
+    }
+    assert!(a.candidates.windows(2).all(|w| w[0].error <= w[1].error));
+    let reads = lib.reads().join(" ");
+    assert!(
+        !reads.contains("material/"),
+        "a material-fixed solve read {reads}"
+    );
+}
+
+#[test]
+fn material_solver_recovers_the_material_of_a_library_combination() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let hf_spec = lib.geometry_items().unwrap()[4].spec.clone();
+    let hf = biscale::solve::library_heightfield(&hf_spec).unwrap();
+    let mut found = 0;
+    let n = lib.manifest.materials;
+    for m in [1, n / 2, n - 1] {
+        let look = combo(&lib, 4, m);
+        let opt = SolveOptions {
+            k: 2,
+            pool: 4,
+            final_eval: Final::Fast,
+            ..Default::default()
+        };
+        let r = biscale::solve::material::solve(&lib, &look, &hf, &hf_spec, Some(4), 0.0, &opt)
+            .unwrap();
+        let best = &r.candidates[0];
+        found += (best.material == Some(m)) as usize;
+        // Whatever it picks is at least as good as the truth, which scores 0 at stage 2.
+        assert!(best.error < 1e-6, "material {m}: best error {}", best.error);
+    }
+    assert_eq!(found, 3);
+}
+
+#[test]
+fn validate_prints_the_table_and_design_exports_watertight_details() {
+    let dir = tiny_library();
+    let lib = Library::open(&dir).unwrap();
+    let job = biscale::validate::ValidateJob {
+        cases: 1,
+        seed: 3,
+        options: SolveOptions {
+            k: 1,
+            pool: 4,
+            final_eval: Final::Fast,
+            ..Default::default()
+        },
+        general: biscale::solve::general::GeneralOptions {
+            starts: 1,
+            max_iterations: 2,
+            ..Default::default()
+        },
+        sweep: false,
+        plot: None,
+        quiet: true,
+    };
+    let t = biscale::validate::run(&lib, &job).unwrap();
+    assert!(
+        t.contains("| geometry (material fixed) | 1 |") && t.contains("exhaustive"),
+        "{t}"
+    );
+
+    let out = std::env::temp_dir().join(format!("biscale-design-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let scene = out.join("scene.toml");
+    std::fs::create_dir_all(&out).unwrap();
+    std::fs::write(
+        &scene,
+        "name = \"t1\"\ntarget = \"ward:alpha=0.2\"\nfixed_material = \"ggx:alpha=0.2,f0=0.9\"\n\
+         profile = \"cnc-ball1-aluminium\"\ntile_mm = [20.0, 20.0]\nviewing_distance_mm = 100000.0\n\
+         details = 1\ncandidates = 4\npsi = 1\nlibrary_profile = \"tiny\"\ndecimate_max_error_mm = 0.01\n",
+    )
+    .unwrap();
+    let job = biscale::design::DesignJob {
+        scene: Some(scene.clone()),
+        outputs: out.clone(),
+        force: false,
+        library: Some(dir.clone()),
+        cache_dir: None,
+        quiet: true,
+    };
+    let text = biscale::design::run(&job).unwrap();
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("t1/summary.json")).unwrap()).unwrap();
+    let details = summary["details"].as_array().unwrap();
+    assert!(!details.is_empty(), "{text}");
+    let d = &details[0];
+    for key in [
+        "patch_mm",
+        "max_deviation_mm",
+        "rms_deviation_mm",
+        "appearance_error_design",
+        "appearance_error_made",
+        "cost",
+    ] {
+        assert!(!d[key].is_null(), "summary lacks {key}: {d}");
+    }
+    let stl = out.join("t1").join(d["stl"].as_str().unwrap());
+    let mut f = std::fs::File::open(&stl).unwrap();
+    let mesh = stl_io::read_stl(&mut f).unwrap();
+    mesh.validate().unwrap();
+    assert!(out.join("t1/report.md").exists());
+    // No overwrite without --force; with it, the output is replaced whole.
+    let e = biscale::design::run(&job).err().unwrap().to_string();
+    assert!(e.contains("--force"), "{e}");
+    biscale::design::run(&biscale::design::DesignJob { force: true, ..job }).unwrap();
+    let leftovers: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name())
+        .filter(|n| n.to_string_lossy().starts_with('.'))
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+    let _ = std::fs::remove_dir_all(&out);
+}
