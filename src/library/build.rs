@@ -215,96 +215,95 @@ pub fn build_shard(
             .collect()
     };
 
-    // Geometry chunks.
-    let gk = mine(geos.len());
-    let todo: Vec<usize> = gk
-        .iter()
-        .copied()
-        .filter(|&k| {
-            let len = chunk.min(geos.len() - k * chunk);
-            !chunk_ok(&chunk_path(dir, "geometry", k), &[len, rows])
-        })
-        .collect();
-    rep.chunks_reused += gk.len() - todo.len();
-    let n_todo: usize = todo
-        .iter()
-        .map(|&k| chunk.min(geos.len() - k * chunk))
-        .sum();
-    let bar = progress.bar(n_todo as u64, "geometries (binned BVNDF)");
-    let t = Instant::now();
-    for &k in &todo {
-        let items = &geos[k * chunk..(k * chunk + chunk).min(geos.len())];
-        let cols: Vec<Vec<half::f16>> = items
-            .par_iter()
-            .map(|it| {
-                let col = geometry_column(it, &layout, prof.geometry.rays)?;
-                bar.inc(1);
-                Ok(col)
-            })
-            .collect::<Result<_>>()?;
-        let mut bytes = Vec::with_capacity(items.len() * rows * 2);
-        for c in &cols {
-            bytes.extend_from_slice(bytemuck::cast_slice(c));
-        }
-        write_array(
-            &chunk_path(dir, "geometry", k),
-            "gamma-chunk",
-            Dtype::F16,
-            &[items.len(), rows],
-            &bytes,
-        )?;
-        rep.chunks_built += 1;
-        rep.geometries_built += items.len();
-    }
-    bar.finish();
-    rep.geometry_seconds = t.elapsed().as_secs_f64();
-
-    // Material chunks.
-    let mk = mine(mats.len());
-    let todo: Vec<usize> = mk
-        .iter()
-        .copied()
-        .filter(|&k| {
-            let len = chunk.min(mats.len() - k * chunk);
-            !chunk_ok(&chunk_path(dir, "material", k), &[len, tlen])
-        })
-        .collect();
-    rep.chunks_reused += mk.len() - todo.len();
-    let n_todo: usize = todo
-        .iter()
-        .map(|&k| chunk.min(mats.len() - k * chunk))
-        .sum();
-    let bar = progress.bar(n_todo as u64, "materials (prefiltered F)");
-    let t = Instant::now();
-    for &k in &todo {
-        let items = &mats[k * chunk..(k * chunk + chunk).min(mats.len())];
-        let tables: Vec<Vec<f32>> = items
-            .par_iter()
-            .map(|it| {
-                let m = parse_material(&it.spec)
-                    .map_err(|e| e.within(format!("material item {}", it.index)))?;
-                let pf = Prefiltered::build(&m, &pcfg);
-                bar.inc(1);
-                Ok(pf.data)
-            })
-            .collect::<Result<_>>()?;
-        let mut bytes = Vec::with_capacity(items.len() * tlen * 4);
-        for t in &tables {
-            bytes.extend_from_slice(f32_bytes(t));
-        }
-        write_array(
-            &chunk_path(dir, "material", k),
-            "prefiltered-chunk",
-            Dtype::F32,
-            &[items.len(), tlen],
-            &bytes,
-        )?;
-        rep.chunks_built += 1;
-        rep.materials_built += items.len();
-    }
-    bar.finish();
-    rep.material_seconds = t.elapsed().as_secs_f64();
+    let (n, secs) = build_chunks(
+        dir,
+        "geometry",
+        "gamma-chunk",
+        Dtype::F16,
+        &geos,
+        rows,
+        chunk,
+        &mine,
+        progress,
+        "geometries (binned BVNDF)",
+        &mut rep,
+        |it| Ok(bytemuck::cast_slice(&geometry_column(it, &layout, prof.geometry.rays)?).to_vec()),
+    )?;
+    rep.geometries_built = n;
+    rep.geometry_seconds = secs;
+    let (n, secs) = build_chunks(
+        dir,
+        "material",
+        "prefiltered-chunk",
+        Dtype::F32,
+        &mats,
+        tlen,
+        chunk,
+        &mine,
+        progress,
+        "materials (prefiltered F)",
+        &mut rep,
+        |it| {
+            let m = parse_material(&it.spec)
+                .map_err(|e| e.within(format!("material item {}", it.index)))?;
+            Ok(f32_bytes(&Prefiltered::build(&m, &pcfg).data).to_vec())
+        },
+    )?;
+    rep.materials_built = n;
+    rep.material_seconds = secs;
     Ok(rep)
+}
+
+/// Build this shard's missing chunks of one kind: items in parallel within a chunk, each chunk
+/// written atomically as one array file. Returns the items built and the seconds spent.
+#[allow(clippy::too_many_arguments)]
+fn build_chunks<T: Sync>(
+    dir: &Path,
+    kind: &str,
+    name: &str,
+    dtype: Dtype,
+    items: &[T],
+    len: usize,
+    chunk: usize,
+    mine: &dyn Fn(usize) -> Vec<usize>,
+    progress: &Progress,
+    what: &str,
+    rep: &mut BuildReport,
+    item_bytes: impl Fn(&T) -> Result<Vec<u8>> + Sync,
+) -> Result<(usize, f64)> {
+    let size = |k: usize| chunk.min(items.len() - k * chunk);
+    let all = mine(items.len());
+    let todo: Vec<usize> = all
+        .iter()
+        .copied()
+        .filter(|&k| !chunk_ok(&chunk_path(dir, kind, k), &[size(k), len]))
+        .collect();
+    rep.chunks_reused += all.len() - todo.len();
+    let bar = progress.bar(todo.iter().map(|&k| size(k)).sum::<usize>() as u64, what);
+    let t = Instant::now();
+    let mut built = 0;
+    for &k in &todo {
+        let part = &items[k * chunk..k * chunk + size(k)];
+        let cols: Vec<Vec<u8>> = part
+            .par_iter()
+            .map(|it| {
+                let b = item_bytes(it)?;
+                bar.inc(1);
+                Ok(b)
+            })
+            .collect::<Result<_>>()?;
+        write_array(
+            &chunk_path(dir, kind, k),
+            name,
+            dtype,
+            &[part.len(), len],
+            &cols.concat(),
+        )?;
+        rep.chunks_built += 1;
+        built += part.len();
+    }
+    bar.finish();
+    Ok((built, t.elapsed().as_secs_f64()))
 }
 
 /// The binned BVNDF column of one geometry item, in half precision.
