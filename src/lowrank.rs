@@ -434,6 +434,9 @@ pub struct RsvdConfig {
     pub max_rank: usize,
     /// Columns per streamed chunk.
     pub chunk: usize,
+    /// Rank the first sketch is sized for (0: 64). A guess at or above the rank needed saves the
+    /// restart, i.e. `2 + 2 power_iters` passes over `B`.
+    pub initial_rank: usize,
     /// Seed of the Gaussian test matrix (stream `k` for chunk `k`).
     pub seed: u64,
 }
@@ -517,7 +520,7 @@ fn times_left_t(
 ///
 /// Passes: `Y = B Omega` (and `||B||_F^2`), then `power_iters` times `Z = orth(B^T Q)`,
 /// `Q = orth(B Z)`, then `C^T = B^T Q` and the SVD of the small `C`. The sketch starts at
-/// `l = min(64, max_rank) + oversample`; when the energy needs more than `l - oversample`
+/// `l = min(initial_rank, max_rank) + oversample` (`initial_rank` 0 means 64); when the energy needs more than `l - oversample`
 /// values it doubles (restarting) until `max_rank`, after which `max_rank` is kept and
 /// `kept_energy` says honestly how much that is. Each attempt makes `2 + 2 power_iters` passes.
 pub fn rsvd_streaming(b: &dyn BlockSource, cfg: &RsvdConfig, want_u: bool) -> Result<Compressed> {
@@ -535,7 +538,11 @@ pub fn rsvd_streaming(b: &dyn BlockSource, cfg: &RsvdConfig, want_u: bool) -> Re
     }
     let full = m.min(n);
     let kmax = cfg.max_rank.min(full);
-    let mut guess = kmax.min(64);
+    let mut guess = kmax.min(if cfg.initial_rank == 0 {
+        64
+    } else {
+        cfg.initial_rank
+    });
     let mut passes = 0;
     loop {
         let l = (guess + cfg.oversample).min(full);
@@ -960,6 +967,7 @@ mod tests {
             max_rank: 400,
             chunk: 100,
             seed: 5,
+            initial_rank: 0,
         };
         let c = rsvd_streaming(&b, &cfg, true).unwrap();
         let worst = (0..20)
@@ -1087,6 +1095,7 @@ mod tests {
                 max_rank: 5,
                 chunk: 4,
                 seed: 0,
+                initial_rank: 0,
             };
             assert!(rsvd_streaming(&good, &cfg, false)
                 .unwrap_err()
@@ -1105,6 +1114,7 @@ mod tests {
             max_rank: 5,
             chunk: 4,
             seed: 0,
+            initial_rank: 0,
         };
         assert!(rsvd_streaming(&empty, &cfg, false)
             .unwrap_err()

@@ -500,6 +500,7 @@ fn compress(
                 max_rank: c.max_rank.min(b.cols()).max(1),
                 chunk: c.stream_chunk,
                 seed: prof.seed,
+                initial_rank: c.initial_rank,
             },
             false,
         )?

@@ -105,6 +105,13 @@ pub struct MaterialFamily {
     pub log: Vec<String>,
 }
 
+fn initial_rank() -> usize {
+    64
+}
+fn is_initial_rank(v: &usize) -> bool {
+    *v == 64
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CompressionSection {
@@ -121,6 +128,9 @@ pub struct CompressionSection {
     pub max_rank: usize,
     /// Columns per streamed chunk of the randomized SVD.
     pub stream_chunk: usize,
+    /// Rank the randomized SVD's first sketch is sized for (a good guess saves a restart).
+    #[serde(default = "initial_rank", skip_serializing_if = "is_initial_rank")]
+    pub initial_rank: usize,
 }
 
 /// Where shipped library profiles are looked for, in order (the first holding `NAME.toml` wins):
