@@ -10,6 +10,7 @@
 //! place, so a failed run leaves no half-written output; an existing output is replaced only
 //! with `--force`.
 
+pub mod refine;
 pub mod report;
 pub mod scene;
 
@@ -68,6 +69,8 @@ pub struct DetailSummary {
     pub appearance_error_made: f64,
     /// The score ranked by: error_made + cost_weight × weighted cost.
     pub score: f64,
+    /// Continuous refinement (amplitude scale, rotation), when asked for.
+    pub refinement: Option<refine::Refined>,
     pub triangles: Option<usize>,
     pub triangles_full: Option<usize>,
     pub mesh_height_error_mm: Option<f64>,
@@ -86,7 +89,8 @@ pub struct Summary {
     pub log: Vec<String>,
 }
 
-/// Appearance error of `hf` with `mat`, rotated by `psi_deg`, against the look (fast evaluator).
+/// Appearance error of `hf` with `mat`, rotated by `psi_deg`, against the look (fast evaluator
+/// on the compact BVNDF `build` makes).
 fn appearance(
     look: &Look,
     hf: &Heightfield,
@@ -94,6 +98,7 @@ fn appearance(
     psi_deg: f64,
     opt: &SolveOptions,
     lights: &[crate::frame::Vec3],
+    build: fn(&Heightfield) -> crate::bvndf::CompactBvndf,
 ) -> f64 {
     let f = look.as_fn();
     let psi = psi_deg.to_radians();
@@ -105,7 +110,7 @@ fn appearance(
     };
     let s = crate::sampling::sample(lights, &rotated, &opt.sampling);
     let t = s.values(&f, psi);
-    s.rel_error(&t, &fast_values(&bvndf_of(hf), pf, &s))
+    s.rel_error(&t, &fast_values(&build(hf), pf, &s))
 }
 
 /// Run the design job; returns the text summary printed to standard output.
@@ -255,12 +260,84 @@ pub fn run(job: &DesignJob) -> Result<String> {
             .or_insert_with(|| {
                 Prefiltered::build(&mat, &crate::solve::geometry::prefilter_for(&lib))
             });
-        let e_design = appearance(&look, &hf, pf, c.psi_deg, &opt, &lights);
-        let e_made = appearance(&look, &rep.made, pf, c.psi_deg, &opt, &lights);
+        let e_design = appearance(&look, &hf, pf, c.psi_deg, &opt, &lights, bvndf_of);
+        let e_made = appearance(&look, &rep.made, pf, c.psi_deg, &opt, &lights, bvndf_of);
         let score = e_made + scene.cost_weight * rep.cost.total;
         ranked.push((score, c.clone(), rep, e_design, e_made, hf, mat));
     }
     ranked.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // Continuous refinement of the best few: amplitude and rotation under the profile's limits.
+    let mut refined_by_spec: BTreeMap<String, refine::Refined> = BTreeMap::new();
+    let t2 = Instant::now();
+    for entry in ranked.iter_mut().take(scene.refine) {
+        let (score, c, rep, e_design, e_made, hf, mat) = entry;
+        let pf = &prefiltered[&c.material_spec];
+        let r = refine::refine(
+            &look,
+            hf,
+            pf,
+            c.psi_deg,
+            rep.patch_mm,
+            &profile,
+            &opt,
+            &lights,
+            scene.refine_evaluations,
+        )?;
+        if r.accepted {
+            let hf2 = hf.scaled(r.scale);
+            let rep2 = check_detail(
+                &hf2,
+                &profile,
+                &CheckOptions {
+                    tile_mm: (scene.tile_mm[0], scene.tile_mm[1]),
+                    patch_mm: Some(rep.patch_mm),
+                    viewing_distance_mm: scene.viewing_distance_mm,
+                },
+            )?;
+            if rep2.feasible {
+                c.psi_deg = r.psi_deg;
+                c.geometry_spec = format!("{} (heights × {:.3})", c.geometry_spec, r.scale);
+                *e_design = appearance(&look, &hf2, pf, c.psi_deg, &opt, &lights, bvndf_of);
+                *e_made = appearance(&look, &rep2.made, pf, c.psi_deg, &opt, &lights, bvndf_of);
+                *score = *e_made + scene.cost_weight * rep2.cost.total;
+                *hf = hf2;
+                *rep = rep2;
+            }
+        }
+        refined_by_spec.insert(c.geometry_spec.clone(), r);
+        let _ = mat;
+    }
+    if scene.refine > 0 && !ranked.is_empty() {
+        ranked.sort_by(|a, b| a.0.total_cmp(&b.0));
+        note(
+            format!(
+                "refinement (NLopt COBYLA, amplitude and rotation): {} in {:.1} s: {}",
+                refined_by_spec.len(),
+                t2.elapsed().as_secs_f64(),
+                refined_by_spec
+                    .iter()
+                    .map(|(g, r)| format!(
+                        "{g}: {:.1} % -> {:.1} % ({}, {} evaluations)",
+                        r.error_before * 100.0,
+                        r.error_after * 100.0,
+                        r.status,
+                        r.evaluations
+                    ))
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            ),
+            &mut log,
+        );
+    }
+    let refined: BTreeMap<usize, refine::Refined> = ranked
+        .iter()
+        .enumerate()
+        .filter_map(|(i, e)| {
+            refined_by_spec
+                .get(&e.1.geometry_spec)
+                .map(|r| (i + 1, r.clone()))
+        })
+        .collect();
     note(
         format!(
             "fabrication: {} candidates ({} distinct geometries) checked in {:.1} s, {} feasible, rejected by reason: {:?}",
@@ -342,6 +419,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
                 appearance_error_design: *e_d,
                 appearance_error_made: *e_m,
                 score: *score,
+                refinement: refined.get(&rank).cloned(),
                 triangles: export.as_ref().map(|e| e.triangles),
                 triangles_full: export.as_ref().map(|e| e.triangles_full),
                 mesh_height_error_mm: export.as_ref().map(|e| e.max_height_error_mm),

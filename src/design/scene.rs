@@ -73,6 +73,13 @@ pub struct Scene {
     pub decimate_max_error_mm: Option<f64>,
     #[serde(default)]
     pub triangle_budget: Option<usize>,
+    /// Refine this many of the best details continuously (amplitude and rotation, NLopt COBYLA,
+    /// the profile's limits as constraints); 0 turns refinement off.
+    #[serde(default = "one_usize")]
+    pub refine: usize,
+    /// Objective evaluations per refined detail (each simulates the tool and builds a quick BVNDF).
+    #[serde(default = "twenty")]
+    pub refine_evaluations: u32,
     /// Seed of the solver's random starts and sampling.
     #[serde(default = "seed")]
     pub seed: u64,
@@ -80,6 +87,12 @@ pub struct Scene {
 
 fn one() -> f64 {
     1.0
+}
+fn one_usize() -> usize {
+    1
+}
+fn twenty() -> u32 {
+    20
 }
 fn two() -> usize {
     2
