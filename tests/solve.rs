@@ -168,7 +168,10 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
     }
     // Refinement (on by default for the best detail) never makes it worse.
     let r = &d["refinement"];
-    assert!(r["error_after"].as_f64().unwrap() <= r["error_before"].as_f64().unwrap(), "{r}");
+    assert!(
+        r["error_after"].as_f64().unwrap() <= r["error_before"].as_f64().unwrap(),
+        "{r}"
+    );
     let stl = out.join("t1").join(d["stl"].as_str().unwrap());
     let mut f = std::fs::File::open(&stl).unwrap();
     let mesh = stl_io::read_stl(&mut f).unwrap();
