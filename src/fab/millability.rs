@@ -12,7 +12,7 @@
 //! Z: heights above the lowest point are rounded to whole layers.
 //!
 //! Both are computed on the triangulated surface sampled `k` times finer than the heightfield
-//! (`k` from [`super::morph::refine_factor`]: spacing at most a quarter of the tool radius, or of
+//! (`k` from [`super::morph::refine_factor`]: spacing at most a sixteenth of the tool radius, or of
 //! the printer's XY radius, with the refined side capped at [`MAX_SIDE`] samples); the surface a
 //! drop cutter makes between samples is therefore resolved to about `(spacing)² / (2 r)`.
 //! Deviation = made − design at every refined sample (for a mill always >= 0): its maximum and
