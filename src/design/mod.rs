@@ -266,6 +266,17 @@ pub fn run(job: &DesignJob) -> Result<String> {
         ranked.push((score, c.clone(), rep, e_design, e_made, hf, mat));
     }
     ranked.sort_by(|a, b| a.0.total_cmp(&b.0));
+    note(
+        format!(
+            "fabrication: {} candidates ({} distinct geometries) checked in {:.1} s, {} feasible, rejected by reason: {:?}",
+            result.candidates.len(),
+            checked.len(),
+            t1.elapsed().as_secs_f64(),
+            ranked.len(),
+            rejected
+        ),
+        &mut log,
+    );
     // Continuous refinement of the best few: amplitude and rotation under the profile's limits.
     let mut refined_by_spec: BTreeMap<String, refine::Refined> = BTreeMap::new();
     let t2 = Instant::now();
@@ -338,17 +349,6 @@ pub fn run(job: &DesignJob) -> Result<String> {
                 .map(|r| (i + 1, r.clone()))
         })
         .collect();
-    note(
-        format!(
-            "fabrication: {} candidates ({} distinct geometries) checked in {:.1} s, {} feasible, rejected by reason: {:?}",
-            result.candidates.len(),
-            checked.len(),
-            t1.elapsed().as_secs_f64(),
-            ranked.len(),
-            rejected
-        ),
-        &mut log,
-    );
 
     // Export into a temporary directory, then rename into place.
     let tmp = job
