@@ -91,6 +91,9 @@ enum Cmd {
         /// Contrast edit (Eq. 16).
         #[arg(long, default_value_t = 1.0)]
         contrast: f64,
+        /// Angular edit: blur (> 1) or sharpen (< 1) the highlight, S or SX,SY (stretch).
+        #[arg(long, default_value = "1")]
+        blur: String,
         /// Target colour r,g,b (average fbar per channel); default: the target material's own.
         #[arg(long)]
         colour: Option<String>,
@@ -345,6 +348,7 @@ fn main() -> ExitCode {
             target,
             brightness,
             contrast,
+            blur,
             colour,
             fix_material,
             fix_geometry,
@@ -367,13 +371,15 @@ fn main() -> ExitCode {
             .as_deref()
             .map(biscale::solve::look::parse_colour)
             .transpose()
-            .and_then(|colour| {
+            .and_then(|c| biscale::solve::look::parse_blur(&blur).map(|b| (c, b)))
+            .and_then(|(colour, blur)| {
                 use biscale::solve::{Final, SolveOptions};
                 biscale::solve::job::run(&biscale::solve::job::SolveJob {
                     target,
                     edits: biscale::solve::look::Edits {
                         brightness,
                         contrast,
+                        blur,
                     },
                     colour,
                     fix_material,

@@ -138,6 +138,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
     let edits = Edits {
         brightness: scene.brightness,
         contrast: scene.contrast,
+        blur: scene.blur,
     };
     let look = Look::from_spec(&scene.target, edits, scene.colour)
         .map_err(|e| e.within("scene target"))?;

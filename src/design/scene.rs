@@ -35,6 +35,10 @@ pub struct Scene {
     pub brightness: f64,
     #[serde(default = "one")]
     pub contrast: f64,
+    /// Angular edit of the target: `[sx, sy]` blur (> 1) or sharpen (< 1) of the highlight along
+    /// x and y (different values stretch it).
+    #[serde(default = "unit_blur")]
+    pub blur: [f64; 2],
     /// Target colour `[r, g, b]` (average fbar per channel), optional.
     #[serde(default)]
     pub colour: Option<[f64; 3]>,
@@ -87,6 +91,9 @@ pub struct Scene {
 
 fn one() -> f64 {
     1.0
+}
+fn unit_blur() -> [f64; 2] {
+    [1.0, 1.0]
 }
 fn one_usize() -> usize {
     1

@@ -27,6 +27,9 @@ impl std::fmt::Debug for Look {
 pub struct Edits {
     pub brightness: f64,
     pub contrast: f64,
+    /// Angular blur (> 1) / sharpen (< 1) of the highlight along x and y; different values make it
+    /// anisotropic ([`Target::with_angular`]).
+    pub blur: [f64; 2],
 }
 
 impl Default for Edits {
@@ -34,6 +37,7 @@ impl Default for Edits {
         Edits {
             brightness: 1.0,
             contrast: 1.0,
+            blur: [1.0, 1.0],
         }
     }
 }
@@ -44,7 +48,8 @@ impl Look {
     pub fn from_spec(spec: &str, edits: Edits, colour: Option<[f64; 3]>) -> Result<Self> {
         let t = Target::parse(spec)?
             .with_brightness(edits.brightness)?
-            .with_contrast(edits.contrast)?;
+            .with_contrast(edits.contrast)?
+            .with_angular(edits.blur[0], edits.blur[1])?;
         let own = match &t.base {
             TargetBase::Flat(m) => {
                 Some(crate::library::items::average_colour(m).map(|c| c * edits.brightness))
@@ -85,6 +90,28 @@ impl Look {
     /// `fbar` at pairs.
     pub fn values(&self, pairs: &[DirPair]) -> Vec<f64> {
         pairs.iter().map(|p| self.fbar(p.wi, p.wo)).collect()
+    }
+}
+
+/// Parse a blur factor `S` or `SX,SY`.
+pub fn parse_blur(s: &str) -> Result<[f64; 2]> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|_| {
+            Error::new(
+                "--blur",
+                format!("'{s}': expected S or SX,SY, e.g. 2 or 3,0.8"),
+            )
+        })?;
+    match v.as_slice() {
+        [a] => Ok([*a, *a]),
+        [a, b] => Ok([*a, *b]),
+        _ => Err(Error::new(
+            "--blur",
+            format!("'{s}': expected one or two factors"),
+        )),
     }
 }
 
