@@ -175,32 +175,48 @@ pub fn smallest(errors: &[f64], n: usize) -> Vec<usize> {
 
 /// Weighted `A X` errors for every item: `t` target values, `a` the representatives' values per
 /// sample (`[k][sample]`), `x` item-major CX weights (`[item][k]`). Returns relative errors.
+/// Items are processed in blocks of [`SEARCH_BLOCK`] (in parallel), so memory stays
+/// `O(samples × block)` whatever the library's size.
 pub fn search_errors(s: &Samples, t: &[f64], a: &[Vec<f64>], x: &[f32], items: usize) -> Vec<f64> {
     use faer::Mat;
+    use rayon::prelude::*;
     let (np, c) = (t.len(), a.len());
     if c == 0 {
         return vec![f64::INFINITY; items];
     }
     let aw = Mat::<f64>::from_fn(np, c, |p, k| a[k][p] * s.weights[p]);
-    let xm = Mat::<f64>::from_fn(c, items, |k, j| x[j * c + k] as f64);
-    let prod = &aw * &xm;
     let tw: Vec<f64> = t.iter().zip(&s.weights).map(|(t, w)| t * w).collect();
     let n2: f64 = tw.iter().map(|v| v * v).sum();
-    (0..items)
-        .map(|j| {
-            let mut d = 0.0;
-            for p in 0..np {
-                let e = tw[p] - prod[(p, j)].max(0.0);
-                d += e * e;
-            }
-            if n2 > 0.0 {
-                (d / n2).sqrt()
-            } else {
-                f64::INFINITY
-            }
+    let blocks: Vec<(usize, usize)> = (0..items)
+        .step_by(SEARCH_BLOCK)
+        .map(|j0| (j0, (j0 + SEARCH_BLOCK).min(items)))
+        .collect();
+    blocks
+        .par_iter()
+        .flat_map_iter(|&(j0, j1)| {
+            let xm = Mat::<f64>::from_fn(c, j1 - j0, |k, j| x[(j0 + j) * c + k] as f64);
+            let prod = &aw * &xm;
+            let tw = &tw;
+            (0..j1 - j0)
+                .map(move |j| {
+                    let mut d = 0.0;
+                    for (p, tp) in tw.iter().enumerate() {
+                        let e = tp - prod[(p, j)].max(0.0);
+                        d += e * e;
+                    }
+                    if n2 > 0.0 {
+                        (d / n2).sqrt()
+                    } else {
+                        f64::INFINITY
+                    }
+                })
+                .collect::<Vec<_>>()
         })
         .collect()
 }
+
+/// Items per block of the compressed search.
+pub const SEARCH_BLOCK: usize = 4096;
 
 /// Rotation `i` of `psi` in radians.
 pub fn psi_angle(i: usize, psi: usize) -> f64 {
