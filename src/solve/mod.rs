@@ -233,3 +233,42 @@ pub fn fmt_dir(w: Vec3) -> String {
     let (t, p) = crate::frame::angles_of(w);
     format!("({:.1}°, {:.1}°)", t.to_degrees(), p.to_degrees())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::Vec3;
+
+    #[test]
+    fn blocked_search_equals_the_direct_sum() {
+        let mut rng = crate::rng::Rng::new(3);
+        let np = 20;
+        let s = Samples {
+            pairs: (0..np).map(|_| (0, Vec3::Z)).collect(),
+            lights: vec![Vec3::Z],
+            weights: (0..np).map(|_| rng.range(0.5, 2.0)).collect(),
+        };
+        let t: Vec<f64> = (0..np).map(|_| rng.uniform()).collect();
+        let c = 3;
+        let a: Vec<Vec<f64>> = (0..c)
+            .map(|_| (0..np).map(|_| rng.uniform()).collect())
+            .collect();
+        let items = SEARCH_BLOCK + 37;
+        let x: Vec<f32> = (0..items * c)
+            .map(|_| rng.range(-0.5, 1.0) as f32)
+            .collect();
+        let e = search_errors(&s, &t, &a, &x, items);
+        assert_eq!(e.len(), items);
+        for j in [0, 1, SEARCH_BLOCK - 1, SEARCH_BLOCK, items - 1] {
+            let f: Vec<f64> = (0..np)
+                .map(|p| {
+                    (0..c)
+                        .map(|k| a[k][p] * x[j * c + k] as f64)
+                        .sum::<f64>()
+                        .max(0.0)
+                })
+                .collect();
+            assert!((e[j] - s.rel_error(&t, &f)).abs() < 1e-12, "item {j}");
+        }
+    }
+}
