@@ -432,6 +432,32 @@ fn mat_f32_rows(m: &Mat<f64>) -> Vec<f32> {
     v
 }
 
+/// The manifest entry of a file written into `dir`.
+fn entry(dir: &Path, rel: &str, checksum: String) -> ArrayEntry {
+    ArrayEntry {
+        path: rel.into(),
+        checksum,
+        bytes: std::fs::metadata(dir.join(rel))
+            .map(|m| m.len())
+            .unwrap_or(0),
+    }
+}
+
+/// Write a whole array into `dir` and list it in `files`.
+fn save(
+    dir: &Path,
+    rel: &str,
+    name: &str,
+    dtype: Dtype,
+    shape: &[usize],
+    bytes: &[u8],
+    files: &mut Vec<ArrayEntry>,
+) -> Result<()> {
+    write_array(&dir.join(rel), name, dtype, shape, bytes)?;
+    files.push(entry(dir, rel, crate::store::checksum(bytes)));
+    Ok(())
+}
+
 fn save_f32(
     dir: &Path,
     rel: &str,
@@ -440,14 +466,7 @@ fn save_f32(
     v: &[f32],
     files: &mut Vec<ArrayEntry>,
 ) -> Result<()> {
-    let p = dir.join(rel);
-    write_array(&p, name, Dtype::F32, shape, f32_bytes(v))?;
-    files.push(ArrayEntry {
-        path: rel.into(),
-        checksum: crate::store::checksum(f32_bytes(v)),
-        bytes: std::fs::metadata(&p).map(|m| m.len()).unwrap_or(0),
-    });
-    Ok(())
+    save(dir, rel, name, Dtype::F32, shape, f32_bytes(v), files)
 }
 
 fn save_u32(
@@ -457,15 +476,15 @@ fn save_u32(
     v: &[u32],
     files: &mut Vec<ArrayEntry>,
 ) -> Result<()> {
-    let p = dir.join(rel);
-    let b: &[u8] = bytemuck::cast_slice(v);
-    write_array(&p, name, Dtype::U32, &[v.len()], b)?;
-    files.push(ArrayEntry {
-        path: rel.into(),
-        checksum: crate::store::checksum(b),
-        bytes: std::fs::metadata(&p).map(|m| m.len()).unwrap_or(0),
-    });
-    Ok(())
+    save(
+        dir,
+        rel,
+        name,
+        Dtype::U32,
+        &[v.len()],
+        bytemuck::cast_slice(v),
+        files,
+    )
 }
 
 /// Compress one item matrix and pick its representatives; writes `<kind>/coords.bsa`,
@@ -624,11 +643,7 @@ pub fn merge(
         &gpath,
         &bar,
     )?;
-    files.push(ArrayEntry {
-        path: "geometry/gamma.bsa".into(),
-        checksum: sum,
-        bytes: std::fs::metadata(&gpath).map(|m| m.len()).unwrap_or(0),
-    });
+    files.push(entry(dir, "geometry/gamma.bsa", sum));
     let mpath = dir.join("material/prefiltered.bsa");
     let sum = assemble(
         dir,
@@ -642,11 +657,7 @@ pub fn merge(
         &bar,
     )?;
     bar.finish();
-    files.push(ArrayEntry {
-        path: "material/prefiltered.bsa".into(),
-        checksum: sum,
-        bytes: std::fs::metadata(&mpath).map(|m| m.len()).unwrap_or(0),
-    });
+    files.push(entry(dir, "material/prefiltered.bsa", sum));
     times.assemble = t.elapsed().as_secs_f64();
 
     // Colours: each BRDF's own average colour and its colour-shift multipliers.
