@@ -55,7 +55,7 @@ impl Default for BvndfConfig {
 }
 
 /// Floats stored per (node pair, cluster).
-const STRIDE: usize = 9;
+pub(crate) const STRIDE: usize = 9;
 
 /// The compact BVNDF of one geometry.
 #[derive(Debug, Clone, PartialEq)]
@@ -207,17 +207,7 @@ impl CompactBvndf {
                         let h = vis.horizon(p.x, p.y, p.z, dx, dy, floor_b, stop);
                         t[jj] = cots.iter().take_while(|&&ct| ct >= h).count();
                     }
-                    let m = [
-                        n.x,
-                        n.y,
-                        n.z,
-                        n.x * n.x,
-                        n.y * n.y,
-                        n.z * n.z,
-                        n.x * n.y,
-                        n.x * n.z,
-                        n.y * n.z,
-                    ];
+                    let m = moments(n);
                     let k = assign[f] as usize;
                     for (ja, &ta) in t.iter().enumerate() {
                         for ia in 0..ta {
@@ -247,12 +237,7 @@ impl CompactBvndf {
                 }
             }
         }
-        let mut planar = vec![true; kc];
-        for (n, &k) in normals.iter().zip(&assign) {
-            if n.dot(centres[k as usize]) < 1.0 - 1e-12 {
-                planar[k as usize] = false;
-            }
-        }
+        let planar = planar_clusters(&normals, &assign, &centres);
         let mut cluster_area = vec![0.0; kc];
         for (a, &k) in areas.iter().zip(&assign) {
             cluster_area[k as usize] += a;
@@ -282,92 +267,180 @@ impl CompactBvndf {
         let kc = self.clusters;
         let wa = self.grid.weights(wi);
         let wb = self.grid.weights(wo);
-        let mut acc = vec![[0.0f64; STRIDE]; kc];
+        let entry = |a: usize, b: usize, c: usize| -> &[f32] {
+            &self.table[(pair_index(a, b) * kc + c) * STRIDE..][..STRIDE]
+        };
         let mut diag = 0.0;
         for &(b, vb) in &wb {
             if vb == 0.0 {
                 continue;
             }
-            let pd = pair_index(b, b);
             for c in 0..kc {
-                let e = &self.table[(pd * kc + c) * STRIDE..];
+                let e = entry(b, b, c);
                 diag += vb * (wo.x * e[0] as f64 + wo.y * e[1] as f64 + wo.z * e[2] as f64);
             }
-            for &(a, ua) in &wa {
+        }
+        let clusters = Clusters {
+            centres: &self.centres,
+            planar: &self.planar,
+            area: &self.cluster_area,
+        };
+        let dir = |n: usize| self.grid.direction(n);
+        assemble_lobes(&clusters, wi, wo, &wa, dir, &wb, dir, entry, diag, out);
+    }
+}
+
+/// Anything that gives the lobes of `gamma(·; wi, wo)` (the full compact BVNDF, or its
+/// restriction to the library's lights, [`crate::lightlobes::LightLobes`]).
+pub trait LobeSource {
+    /// `(weight, vMF)` per normal cluster; empty where `gamma` is not defined.
+    fn lobes(&self, wi: Vec3, wo: Vec3, out: &mut Vec<(f64, Vmf)>);
+    /// Lobes at most (scratch capacity).
+    fn clusters(&self) -> usize;
+}
+
+impl LobeSource for CompactBvndf {
+    fn lobes(&self, wi: Vec3, wo: Vec3, out: &mut Vec<(f64, Vmf)>) {
+        CompactBvndf::lobes(self, wi, wo, out)
+    }
+    fn clusters(&self) -> usize {
+        self.clusters
+    }
+}
+
+/// The per-cluster data lobes are assembled from.
+pub(crate) struct Clusters<'a> {
+    pub centres: &'a [Vec3],
+    pub planar: &'a [bool],
+    pub area: &'a [f64],
+}
+
+/// Turn tabulated moments into lobes (shared by every table layout). `wa`, `wb`: interpolation
+/// weights of `wi` and `wo` over the table's light-side and view-side nodes, with their
+/// directions `a_dir`, `b_dir`; `entry(a, b, c)`: the 9 moments of cluster `c` at `(a, b)`;
+/// `diag`: the visible projected area `a_v(wo)` from the same table.
+///
+/// * a cluster's share of `gamma` is `wo·G1 / a_v(wo)`, its shape the vMF whose mean and mean
+///   resultant length match the `(n·wo)`-weighted mean normal `G2 wo / (wo·G1)`;
+/// * a planar cluster takes its analytic projected area `A_k (n·wo)+` times its jointly visible
+///   fraction, interpolated only over the nodes it faces.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn assemble_lobes<'t>(
+    cl: &Clusters,
+    wi: Vec3,
+    wo: Vec3,
+    wa: &[(usize, f64)],
+    a_dir: impl Fn(usize) -> Vec3,
+    wb: &[(usize, f64)],
+    b_dir: impl Fn(usize) -> Vec3,
+    entry: impl Fn(usize, usize, usize) -> &'t [f32],
+    diag: f64,
+    out: &mut Vec<(f64, Vmf)>,
+) {
+    out.clear();
+    if !(diag > 0.0) {
+        return;
+    }
+    for c in 0..cl.centres.len() {
+        if cl.planar[c] {
+            // A planar cluster's share is its analytic projected area times its jointly
+            // visible fraction, interpolated only over the nodes where it faces both
+            // directions (a facet facing a node carries no information about shadowing).
+            let n = cl.centres[c];
+            let (ci, co) = (n.dot(wi), n.dot(wo));
+            let area = cl.area[c];
+            if ci <= 0.0 || co <= 0.0 || !(area > 0.0) {
+                continue;
+            }
+            let (mut rs, mut ws) = (0.0, 0.0);
+            for &(b, vb) in wb {
+                let wbv = b_dir(b);
+                let cb = n.dot(wbv);
+                if vb == 0.0 || cb <= 1e-9 {
+                    continue;
+                }
+                for &(na, ua) in wa {
+                    if ua == 0.0 || n.dot(a_dir(na)) <= 1e-9 {
+                        continue;
+                    }
+                    let e = entry(na, b, c);
+                    let g = wbv.x * e[0] as f64 + wbv.y * e[1] as f64 + wbv.z * e[2] as f64;
+                    rs += ua * vb * (g / (area * cb)).clamp(0.0, 1.0);
+                    ws += ua * vb;
+                }
+            }
+            if ws > 0.0 {
+                out.push((
+                    area * co * rs / ws / diag,
+                    Vmf::new(crate::vmf::KAPPA_MAX, n),
+                ));
+                continue;
+            }
+        }
+        let mut a = [0.0f64; STRIDE];
+        for &(b, vb) in wb {
+            if vb == 0.0 {
+                continue;
+            }
+            for &(na, ua) in wa {
                 let w = ua * vb;
                 if w == 0.0 {
                     continue;
                 }
-                let pi = pair_index(a, b);
-                for c in 0..kc {
-                    let e = &self.table[(pi * kc + c) * STRIDE..];
-                    for q in 0..STRIDE {
-                        acc[c][q] += w * e[q] as f64;
-                    }
+                let e = entry(na, b, c);
+                for q in 0..STRIDE {
+                    a[q] += w * e[q] as f64;
                 }
             }
         }
-        if !(diag > 0.0) {
-            return;
+        let mass = wo.x * a[0] + wo.y * a[1] + wo.z * a[2];
+        if !(mass > 0.0) {
+            continue;
         }
-        for (c, a) in acc.iter().enumerate() {
-            if self.planar[c] {
-                // A planar cluster's share is its analytic projected area times its jointly
-                // visible fraction, interpolated only over the nodes where it faces both
-                // directions (a facet facing a node carries no information about shadowing).
-                let n = self.centres[c];
-                let (ci, co) = (n.dot(wi), n.dot(wo));
-                if ci <= 0.0 || co <= 0.0 {
-                    continue;
-                }
-                let area = self.cluster_area[c];
-                let (mut rs, mut ws) = (0.0, 0.0);
-                for &(b, vb) in &wb {
-                    let wbv = self.grid.direction(b);
-                    let cb = n.dot(wbv);
-                    if vb == 0.0 || cb <= 1e-9 {
-                        continue;
-                    }
-                    for &(na, ua) in &wa {
-                        if ua == 0.0 || n.dot(self.grid.direction(na)) <= 1e-9 {
-                            continue;
-                        }
-                        let e = &self.table[(pair_index(na, b) * kc + c) * STRIDE..];
-                        let g = wbv.x * e[0] as f64 + wbv.y * e[1] as f64 + wbv.z * e[2] as f64;
-                        rs += ua * vb * (g / (area * cb)).clamp(0.0, 1.0);
-                        ws += ua * vb;
-                    }
-                }
-                if ws > 0.0 {
-                    out.push((
-                        area * co * rs / ws / diag,
-                        Vmf::new(crate::vmf::KAPPA_MAX, n),
-                    ));
-                    continue;
-                }
-            }
-            let mass = wo.x * a[0] + wo.y * a[1] + wo.z * a[2];
-            if !(mass > 0.0) {
-                continue;
-            }
-            // (n·wo)-weighted normal moment G2 wo.
-            let m = Vec3::new(
-                a[3] * wo.x + a[6] * wo.y + a[7] * wo.z,
-                a[6] * wo.x + a[4] * wo.y + a[8] * wo.z,
-                a[7] * wo.x + a[8] * wo.y + a[5] * wo.z,
-            );
-            let len = m.norm();
-            if !(len > 0.0) {
-                continue;
-            }
-            let lobe = if self.planar[c] {
-                Vmf::new(crate::vmf::KAPPA_MAX, self.centres[c])
-            } else {
-                Vmf::new(kappa_from_resultant((len / mass).min(1.0)), m * (1.0 / len))
-            };
-            out.push((mass / diag, lobe));
+        // (n·wo)-weighted normal moment G2 wo.
+        let m = Vec3::new(
+            a[3] * wo.x + a[6] * wo.y + a[7] * wo.z,
+            a[6] * wo.x + a[4] * wo.y + a[8] * wo.z,
+            a[7] * wo.x + a[8] * wo.y + a[5] * wo.z,
+        );
+        let len = m.norm();
+        if !(len > 0.0) {
+            continue;
+        }
+        let lobe = if cl.planar[c] {
+            Vmf::new(crate::vmf::KAPPA_MAX, cl.centres[c])
+        } else {
+            Vmf::new(kappa_from_resultant((len / mass).min(1.0)), m * (1.0 / len))
+        };
+        out.push((mass / diag, lobe));
+    }
+}
+
+/// The 9 moments of one hit normal: `n` and the upper triangle of `n nᵀ`.
+#[inline]
+pub(crate) fn moments(n: Vec3) -> [f64; STRIDE] {
+    [
+        n.x,
+        n.y,
+        n.z,
+        n.x * n.x,
+        n.y * n.y,
+        n.z * n.z,
+        n.x * n.y,
+        n.x * n.z,
+        n.y * n.z,
+    ]
+}
+
+/// Which facets form planar clusters: every facet normal equals its centre (to 1e-12).
+pub(crate) fn planar_clusters(normals: &[Vec3], assign: &[u16], centres: &[Vec3]) -> Vec<bool> {
+    let mut planar = vec![true; centres.len()];
+    for (n, &k) in normals.iter().zip(assign) {
+        if n.dot(centres[k as usize]) < 1.0 - 1e-12 {
+            planar[k as usize] = false;
         }
     }
+    planar
 }
 
 #[cfg(test)]

@@ -20,9 +20,11 @@
 //! n_z)` (a diamond), rotated 45° to the square `[-1, 1]²`, with `G × G` nodes at the corners of
 //! `G - 1` cells.
 
+use crate::bvndf::{cluster_normals, moments, planar_clusters, STRIDE};
 use crate::dirgrid::DirGrid;
 use crate::frame::{dir_from_deg, Vec3};
 use crate::heightfield::Heightfield;
+use crate::lightlobes::{record_len, HEAD};
 use crate::material::Material;
 use crate::pairs::light_directions;
 use crate::prefilter::quadrature;
@@ -150,35 +152,86 @@ impl GammaLayout {
     /// The binned `gamma` of `hf`, `[light][view node][normal node]`, from about `rays` view rays
     /// per view node (a jittered lattice over the period, as in the compact BVNDF).
     pub fn column(&self, hf: &Heightfield, rays: usize) -> Vec<f32> {
+        self.trace(hf, rays, 0).0
+    }
+
+    /// One pass of view rays over `hf`: the binned column and, when `clusters > 0`, the record of
+    /// its compact BVNDF at the lights ([`crate::lightlobes`]) with that many normal clusters.
+    /// Each ray from view node `b` finds the point `b` sees; its normal is splatted into the
+    /// column of every light that reaches the point, and its moments, weighted by the surface
+    /// area the ray stands for, `(A_base cos theta_b / N) / (n·w_b)`, added to its cluster.
+    pub fn trace(&self, hf: &Heightfield, rays: usize, clusters: usize) -> (Vec<f32>, Vec<f32>) {
         let vis = Visibility::new(hf);
         let facets = hf.facets();
         let origins = ray_lattice(hf.width(), hf.height(), rays);
         let inv = 1.0 / origins.len().max(1) as f64;
         let (nl, nv, nb) = (self.lights.len(), self.views.len(), self.normals.len());
-        // One block per view node: [light][normal].
-        let blocks: Vec<Vec<f64>> = (0..nv)
+        let kc = clusters;
+        let (assign, centres, planar, area) = if kc > 0 {
+            let abase = hf.base_area();
+            let normals: Vec<Vec3> = facets.iter().map(|f| f.n).collect();
+            let areas: Vec<f64> = facets.iter().map(|f| f.area / abase).collect();
+            let (assign, centres) = cluster_normals(&normals, &areas, kc);
+            let planar = planar_clusters(&normals, &assign, &centres);
+            let mut area = vec![0.0; centres.len()];
+            for (a, &k) in areas.iter().zip(&assign) {
+                area[k as usize] += a;
+            }
+            (assign, centres, planar, area)
+        } else {
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new())
+        };
+        // One block per view node: the column's [light][normal], the lobes' seen [cluster][3]
+        // and lit [light][cluster][9].
+        struct Block {
+            col: Vec<f64>,
+            seen: Vec<f64>,
+            lit: Vec<f64>,
+        }
+        let blocks: Vec<Block> = (0..nv)
             .into_par_iter()
             .map(|v| {
                 let wv = self.views.direction(v);
-                let mut acc = vec![0.0f64; nl * nb];
+                let mut blk = Block {
+                    col: vec![0.0f64; nl * nb],
+                    seen: vec![0.0f64; kc * 3],
+                    lit: vec![0.0f64; nl * kc * STRIDE],
+                };
                 for &(u, w) in &origins {
                     let (p, f) = vis.first_hit(u, w, wv);
                     let n = facets[f].n;
-                    if n.dot(wv) <= 1e-9 {
+                    let c = n.dot(wv);
+                    if c <= 1e-9 {
                         continue;
                     }
                     let sp = self.normals.splat(n);
+                    let (k, wgt, m) = if kc > 0 {
+                        (assign[f] as usize, wv.z * inv / c, moments(n))
+                    } else {
+                        (0, 0.0, [0.0; STRIDE])
+                    };
+                    if kc > 0 {
+                        for q in 0..3 {
+                            blk.seen[k * 3 + q] += wgt * m[q];
+                        }
+                    }
                     for (l, wl) in self.lights.iter().enumerate() {
                         if n.dot(*wl) <= 0.0 || !vis.visible(p.x, p.y, p.z, *wl) {
                             continue;
                         }
-                        let row = &mut acc[l * nb..(l + 1) * nb];
+                        let row = &mut blk.col[l * nb..(l + 1) * nb];
                         for &(b, wb) in &sp {
                             row[b] += wb * inv;
                         }
+                        if kc > 0 {
+                            let e = &mut blk.lit[(l * kc + k) * STRIDE..][..STRIDE];
+                            for q in 0..STRIDE {
+                                e[q] += wgt * m[q];
+                            }
+                        }
                     }
                 }
-                acc
+                blk
             })
             .collect();
         let mut out = vec![0f32; self.rows()];
@@ -186,11 +239,39 @@ impl GammaLayout {
             for l in 0..nl {
                 let dst = (l * nv + v) * nb;
                 for b in 0..nb {
-                    out[dst + b] = blk[l * nb + b] as f32;
+                    out[dst + b] = blk.col[l * nb + b] as f32;
                 }
             }
         }
-        out
+        if kc == 0 {
+            return (out, Vec::new());
+        }
+        // The record: clusters, seen, lit (see `crate::lightlobes`); unused clusters stay zero.
+        let mut rec = vec![0f32; record_len(self, kc)];
+        for (c, ctr) in centres.iter().enumerate() {
+            let h = &mut rec[c * HEAD..(c + 1) * HEAD];
+            h.copy_from_slice(&[
+                ctr.x as f32,
+                ctr.y as f32,
+                ctr.z as f32,
+                if planar[c] { 1.0 } else { 0.0 },
+                area[c] as f32,
+            ]);
+        }
+        let seen0 = kc * HEAD;
+        let lit0 = seen0 + nv * kc * 3;
+        for (v, blk) in blocks.iter().enumerate() {
+            for (i, x) in blk.seen.iter().enumerate() {
+                rec[seen0 + v * kc * 3 + i] = *x as f32;
+            }
+            for l in 0..nl {
+                for i in 0..kc * STRIDE {
+                    rec[lit0 + (l * nv + v) * kc * STRIDE + i] =
+                        blk.lit[l * kc * STRIDE + i] as f32;
+                }
+            }
+        }
+        (out, rec)
     }
 }
 

@@ -24,6 +24,7 @@ pub mod dirgrid;
 pub mod exact;
 pub mod fast;
 pub mod gamma;
+pub mod lightlobes;
 pub mod prefilter;
 pub mod visibility;
 pub mod vmf;

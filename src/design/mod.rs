@@ -23,7 +23,7 @@ use crate::library::progress::Progress;
 use crate::material::{parse_material, Material};
 use crate::prefilter::Prefiltered;
 use crate::solve::look::Edits;
-use crate::solve::{bvndf_of, fast_values, Candidate, Final, Look, SolveOptions};
+use crate::solve::{fast_values, Candidate, Final, Look, SolveOptions};
 use scene::Scene;
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -89,28 +89,34 @@ pub struct Summary {
     pub log: Vec<String>,
 }
 
-/// Appearance error of `hf` with `mat`, rotated by `psi_deg`, against the look (fast evaluator
-/// on the compact BVNDF `build` makes).
-fn appearance(
-    look: &Look,
-    hf: &Heightfield,
-    pf: &Prefiltered,
-    psi_deg: f64,
-    opt: &SolveOptions,
-    lights: &[crate::frame::Vec3],
-    build: fn(&Heightfield) -> crate::bvndf::CompactBvndf,
-) -> f64 {
-    let f = look.as_fn();
-    let psi = psi_deg.to_radians();
-    let rotated = |wi, wo| {
-        f(
-            crate::frame::rotate_z(wi, psi),
-            crate::frame::rotate_z(wo, psi),
-        )
-    };
-    let s = crate::sampling::sample(lights, &rotated, &opt.sampling);
-    let t = s.values(&f, psi);
-    s.rel_error(&t, &fast_values(&build(hf), pf, &s))
+/// How the design job measures the appearance error of a heightfield (designed, milled or
+/// refined): its light lobes ([`crate::lightlobes`]) at the library's lights, where every sample
+/// lies, with the material's prefiltered table. `rays` view rays per view node.
+pub struct Appraiser {
+    pub layout: crate::gamma::GammaLayout,
+    pub rays: usize,
+    pub clusters: usize,
+}
+
+impl Appraiser {
+    /// Relative error of `hf` with `pf`, rotated by `psi_deg`, against the look.
+    pub fn error(
+        &self,
+        look: &Look,
+        hf: &Heightfield,
+        pf: &Prefiltered,
+        psi_deg: f64,
+        opt: &SolveOptions,
+    ) -> f64 {
+        let (s, t) = crate::solve::rotated_samples(
+            look,
+            &self.layout.lights,
+            psi_deg.to_radians(),
+            &opt.sampling,
+        );
+        let geo = crate::lightlobes::LightLobes::build(&self.layout, hf, self.rays, self.clusters);
+        s.rel_error(&t, &fast_values(&geo, pf, &s))
+    }
 }
 
 /// Run the design job; returns the text summary printed to standard output.
@@ -157,7 +163,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
     )?;
     let opt = SolveOptions {
         k: scene.candidates,
-        pool: scene.candidates,
+        pool: scene.candidates.max(64),
         psi: scene.psi,
         // The fabrication stage evaluates the designed and the made surface of every feasible
         // candidate with the fast evaluator; a third solver stage would repeat that.
@@ -203,7 +209,11 @@ pub fn run(job: &DesignJob) -> Result<String> {
     );
 
     // Fabrication stage: check every candidate, evaluate the made surface, rank.
-    let lights = lib.gamma_layout().lights;
+    let eye = Appraiser {
+        layout: lib.gamma_layout(),
+        rays: crate::solve::LIGHT_LOBE_RAYS,
+        clusters: lib.profile.geometry.lobe_clusters,
+    };
     let mut rejected: BTreeMap<String, usize> = BTreeMap::new();
     let mut rejections = Vec::new();
     let mut ranked: Vec<(f64, Candidate, FabReport, f64, f64, Heightfield, Material)> = Vec::new();
@@ -256,13 +266,13 @@ pub fn run(job: &DesignJob) -> Result<String> {
             continue;
         }
         let mat = parse_material(&c.material_spec)?;
-        let pf = prefiltered
-            .entry(c.material_spec.clone())
-            .or_insert_with(|| {
-                Prefiltered::build(&mat, &crate::solve::geometry::prefilter_for(&lib))
-            });
-        let e_design = appearance(&look, &hf, pf, c.psi_deg, &opt, &lights, bvndf_of);
-        let e_made = appearance(&look, &rep.made, pf, c.psi_deg, &opt, &lights, bvndf_of);
+        if !prefiltered.contains_key(&c.material_spec) {
+            let pf = crate::solve::material_prefiltered(&lib, &mat, c.material)?;
+            prefiltered.insert(c.material_spec.clone(), pf);
+        }
+        let pf = &prefiltered[&c.material_spec];
+        let e_design = eye.error(&look, &hf, pf, c.psi_deg, &opt);
+        let e_made = eye.error(&look, &rep.made, pf, c.psi_deg, &opt);
         let score = e_made + scene.cost_weight * rep.cost.total;
         ranked.push((score, c.clone(), rep, e_design, e_made, hf, mat));
     }
@@ -292,7 +302,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
             rep.patch_mm,
             &profile,
             &opt,
-            &lights,
+            &eye,
             scene.refine_evaluations,
         )?;
         if r.accepted {
@@ -309,8 +319,8 @@ pub fn run(job: &DesignJob) -> Result<String> {
             if rep2.feasible {
                 c.psi_deg = r.psi_deg;
                 c.geometry_spec = format!("{} (heights × {:.3})", c.geometry_spec, r.scale);
-                *e_design = appearance(&look, &hf2, pf, c.psi_deg, &opt, &lights, bvndf_of);
-                *e_made = appearance(&look, &rep2.made, pf, c.psi_deg, &opt, &lights, bvndf_of);
+                *e_design = eye.error(&look, &hf2, pf, c.psi_deg, &opt);
+                *e_made = eye.error(&look, &rep2.made, pf, c.psi_deg, &opt);
                 *score = *e_made + scene.cost_weight * rep2.cost.total;
                 *hf = hf2;
                 *rep = rep2;

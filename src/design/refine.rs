@@ -10,13 +10,12 @@
 //! error before and after are both measured that way, and the refined detail is kept only if it
 //! is better.
 
-use super::appearance;
+use super::Appraiser;
 use crate::error::Result;
 use crate::fab::{millability::simulate, Profile};
-use crate::frame::Vec3;
 use crate::heightfield::Heightfield;
 use crate::prefilter::Prefiltered;
-use crate::solve::{quick_bvndf_of, Look, SolveOptions};
+use crate::solve::{Look, SolveOptions};
 use nlopt::{Algorithm, Nlopt, Target};
 use serde::Serialize;
 use std::cell::Cell;
@@ -45,7 +44,7 @@ pub fn refine(
     patch_mm: f64,
     profile: &Profile,
     opt: &SolveOptions,
-    lights: &[Vec3],
+    eye: &Appraiser,
     max_evals: u32,
 ) -> Result<Refined> {
     let reach = profile
@@ -53,10 +52,17 @@ pub fn refine(
         .as_ref()
         .map(|t| t.flute_length_mm)
         .unwrap_or(f64::INFINITY);
+    // A quarter of the rays inside the loop: the error is measured again at full rays when the
+    // refined detail is accepted.
+    let quick = Appraiser {
+        rays: (eye.rays / 4).max(1),
+        clusters: eye.clusters,
+        layout: eye.layout.clone(),
+    };
     let error_at = |x: &[f64]| -> f64 {
         match simulate(&hf.scaled(x[0]), patch_mm, profile) {
             Ok(sim) => {
-                let e = appearance(look, &sim.made, pf, x[1], opt, lights, quick_bvndf_of);
+                let e = quick.error(look, &sim.made, pf, x[1], opt);
                 if e.is_finite() {
                     e
                 } else {

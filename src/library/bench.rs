@@ -2,7 +2,7 @@
 //! to precompute (and what a whole profile would cost on this machine), and how well `fbar`
 //! reconstructed from the representatives (Eq. 12) matches the exact evaluator.
 
-use super::build::{gamma_layout, geometry_column, prefilter_config};
+use super::build::{gamma_layout, geometry_data, prefilter_config};
 use super::items::{geometry_items, material_items};
 use super::profile::LibraryProfile;
 use super::Library;
@@ -39,7 +39,7 @@ pub fn speed(profile: &str, sample: usize) -> Result<String> {
     };
     let t = Instant::now();
     for &i in &pick(geos.len(), sample) {
-        geometry_column(&geos[i], &layout, prof.geometry.rays)?;
+        geometry_data(&geos[i], &layout, &prof)?;
     }
     let ng = pick(geos.len(), sample).len().max(1);
     let tg = t.elapsed().as_secs_f64() / ng as f64;
@@ -53,25 +53,29 @@ pub fn speed(profile: &str, sample: usize) -> Result<String> {
     let tm = t.elapsed().as_secs_f64() / msample.len().max(1) as f64;
     let threads = rayon::current_num_threads();
     let gamma_mb = layout.rows() as f64 * 2.0 / 1e6;
+    let lobes_mb =
+        crate::lightlobes::record_len(&layout, prof.geometry.lobe_clusters) as f64 * 4.0 / 1e6;
     let table_mb = super::build::table_len(&prof) as f64 * 4.0 / 1e6;
     let total = tg * geos.len() as f64 + tm * mats.len() as f64;
     Ok(format!(
         "Precompute of profile '{}' on {threads} threads (each item's work is parallel inside):\n\n\
          | item | sampled | wall time per item | items in profile | extrapolated | stored per item |\n\
          |---|---|---|---|---|---|\n\
-         | geometry ({}² heights, {} lights × {} views × {}² normals, {} rays/view) | {ng} | {:.1} ms | {} | {:.1} min | {:.2} MB |\n\
+         | geometry ({}² heights, {} lights × {} views × {}² normals + {} light-lobe clusters, {} rays/view) | {ng} | {:.1} ms | {} | {:.1} min | {:.2} + {:.2} MB |\n\
          | material (prefiltered F, {} entries × {} samples) | {} | {:.1} ms | {} | {:.1} min | {:.2} MB |\n\n\
-         Extrapolated precompute (before the merge): {:.1} min; geometry matrix {:.1} GB, material matrix {:.2} GB.\n",
+         Extrapolated precompute (before the merge): {:.1} min; geometry matrix {:.1} GB, light lobes {:.1} GB, material matrix {:.2} GB.\n",
         prof.name,
         prof.geometry.resolution,
         layout.lights.len(),
         layout.views.len(),
         prof.geometry.normal_grid,
+        prof.geometry.lobe_clusters,
         prof.geometry.rays,
         tg * 1e3,
         geos.len(),
         tg * geos.len() as f64 / 60.0,
         gamma_mb,
+        lobes_mb,
         super::build::table_len(&prof),
         pcfg.samples,
         msample.len(),
@@ -81,6 +85,7 @@ pub fn speed(profile: &str, sample: usize) -> Result<String> {
         table_mb,
         total / 60.0,
         gamma_mb * geos.len() as f64 / 1e3,
+        lobes_mb * geos.len() as f64 / 1e3,
         table_mb * mats.len() as f64 / 1e3,
     ))
 }
@@ -92,7 +97,10 @@ fn rel(got: &[f64], want: &[f64]) -> f64 {
 
 /// For `geometries` random library geometries × `materials_per` random library materials each:
 /// `fbar` at 7 lights × 10 views from (a) the exact evaluator, (b) the geometry's own binned
-/// column, (c) the representatives' columns combined with the geometry's CX weights (Eq. 12).
+/// column, (c) the representatives' columns combined with the geometry's CX weights (Eq. 12),
+/// (d) the geometry's own light lobes ([`crate::lightlobes`]) with the material's stored table,
+/// (e) the representatives' light lobes combined with the CX weights (what the geometry search
+/// computes).
 pub fn accuracy(dir: &Path, geometries: usize, materials_per: usize, seed: u64) -> Result<String> {
     let lib = Library::open(dir)?;
     let items = lib.geometry_items()?;
@@ -141,17 +149,41 @@ pub fn accuracy(dir: &Path, geometries: usize, materials_per: usize, seed: u64) 
     const NARROW: f64 = 0.15;
     let (mut e_bin, mut e_cmp, mut e_rec) = (Vec::new(), Vec::new(), Vec::new());
     let (mut w_bin, mut w_rec) = (Vec::new(), Vec::new());
+    let (mut e_lob, mut e_lrec, mut w_lob) = (Vec::new(), Vec::new(), Vec::new());
+    let lobes = lib.geometry_lobes()?;
+    let mat_index: Vec<usize> = (0..geometries * materials_per)
+        .map(|_| rng.below(mats.len() as u64) as usize)
+        .collect();
+    let mut picks = mat_index.chunks(materials_per.max(1));
     let t = Instant::now();
     for _ in 0..geometries {
         let j = rng.below(items.len() as u64) as usize;
         let hf = parse_generator(&items[j].spec)?.build()?;
-        let chosen: Vec<Material> = (0..materials_per)
-            .map(|_| parse_material(&mats[rng.below(mats.len() as u64) as usize].spec))
+        let idx = picks.next().unwrap_or(&[]);
+        let chosen: Vec<Material> = idx
+            .iter()
+            .map(|&m| parse_material(&mats[m].spec))
             .collect::<Result<_>>()?;
         let refs: Vec<&Material> = chosen.iter().collect();
         let exact = ExactEvaluator::new(&hf, 2).fbar_many(&refs, &dirs);
         let own = column(j);
-        for (m, ex) in chosen.iter().zip(&exact) {
+        let own_lobes = lobes.get(j)?;
+        for ((m, ex), &mi) in chosen.iter().zip(&exact).zip(idx) {
+            let pf = crate::solve::material_prefiltered(&lib, m, Some(mi))?;
+            let lob = crate::fast::fbar(&own_lobes, &pf, &dirs);
+            let mut lrec = vec![0.0; pairs.len()];
+            for (k, &r) in reps.iter().enumerate() {
+                let w = xs[j * c + k] as f64;
+                if w != 0.0 {
+                    let v = crate::fast::fbar(&lobes.get(r as usize)?, &pf, &dirs);
+                    for (a, b) in lrec.iter_mut().zip(v) {
+                        *a += w * b;
+                    }
+                }
+            }
+            let lrec: Vec<f64> = lrec.into_iter().map(|v| v.max(0.0)).collect();
+            e_lob.push(rel(&lob, ex));
+            e_lrec.push(rel(&lrec, ex));
             let resp = Response::new(&layout, m, &pairs);
             let bin = resp.apply(&own);
             let mut rec = vec![0.0; pairs.len()];
@@ -170,6 +202,7 @@ pub fn accuracy(dir: &Path, geometries: usize, materials_per: usize, seed: u64) 
             if m.min_lobe_width().is_none_or(|w| w >= NARROW) {
                 w_bin.push(rel(&bin, ex));
                 w_rec.push(rel(&rec, ex));
+                w_lob.push(rel(&lob, ex));
             }
         }
     }
@@ -188,7 +221,7 @@ pub fn accuracy(dir: &Path, geometries: usize, materials_per: usize, seed: u64) 
     Ok(format!(
         "Library {} ('{}': {} geometries, {} representatives): {n} (geometry, material) cases, {} pairs each \
          (7 lights × 10 views to 80°), exact evaluator with 2×2 rays per cell; {:.0} s.\n\n\
-         | relative RMS of fbar | median | 90th pct | max | cases ≤ 5 % |\n|---|---|---|---|---|\n{}{}{}{}{}",
+         | relative RMS of fbar | median | 90th pct | max | cases ≤ 5 % |\n|---|---|---|---|---|\n{}{}{}{}{}{}{}{}",
         dir.display(),
         lib.manifest.profile,
         items.len(),
@@ -200,5 +233,8 @@ pub fn accuracy(dir: &Path, geometries: usize, materials_per: usize, seed: u64) 
         row("representatives (Eq. 12) vs exact", e_rec),
         row(&format!("binned vs exact, glossy lobes ≥ {NARROW} rad ({} cases)", w_bin.len()), w_bin),
         row("representatives vs exact, same cases", w_rec),
+        row("light lobes vs exact", e_lob),
+        row("representatives' light lobes (Eq. 12) vs exact", e_lrec),
+        row("light lobes vs exact, glossy lobes ≥ 0.15 rad", w_lob),
     ))
 }

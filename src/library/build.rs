@@ -22,6 +22,7 @@ use super::progress::{Bar, Progress, Stages};
 use crate::error::{Error, Result};
 use crate::gamma::GammaLayout;
 use crate::generators::parse_generator;
+use crate::lightlobes::record_len;
 use crate::lowrank::{cx, rsvd_streaming, svd_gram, BlockSource, CxMethod, RsvdConfig};
 use crate::material::parse_material;
 use crate::prefilter::{PrefilterConfig, Prefiltered};
@@ -215,29 +216,48 @@ pub fn build_shard(
             .collect()
     };
 
+    let lobes_len = record_len(&layout, prof.geometry.lobe_clusters);
     let (n, secs) = build_chunks(
         dir,
-        "geometry",
-        "gamma-chunk",
-        Dtype::F16,
+        &[
+            Output {
+                kind: "geometry",
+                name: "gamma-chunk",
+                dtype: Dtype::F16,
+                len: rows,
+            },
+            Output {
+                kind: "lobes",
+                name: "lobes-chunk",
+                dtype: Dtype::F32,
+                len: lobes_len,
+            },
+        ],
         &geos,
-        rows,
         chunk,
         &mine,
         progress,
-        "geometries (binned BVNDF)",
+        "geometries (binned BVNDF and light lobes)",
         &mut rep,
-        |it| Ok(bytemuck::cast_slice(&geometry_column(it, &layout, prof.geometry.rays)?).to_vec()),
+        |it| {
+            let (col, lobes) = geometry_data(it, &layout, prof)?;
+            Ok(vec![
+                bytemuck::cast_slice(&col).to_vec(),
+                f32_bytes(&lobes).to_vec(),
+            ])
+        },
     )?;
     rep.geometries_built = n;
     rep.geometry_seconds = secs;
     let (n, secs) = build_chunks(
         dir,
-        "material",
-        "prefiltered-chunk",
-        Dtype::F32,
+        &[Output {
+            kind: "material",
+            name: "prefiltered-chunk",
+            dtype: Dtype::F32,
+            len: tlen,
+        }],
         &mats,
-        tlen,
         chunk,
         &mine,
         progress,
@@ -246,7 +266,7 @@ pub fn build_shard(
         |it| {
             let m = parse_material(&it.spec)
                 .map_err(|e| e.within(format!("material item {}", it.index)))?;
-            Ok(f32_bytes(&Prefiltered::build(&m, &pcfg).data).to_vec())
+            Ok(vec![f32_bytes(&Prefiltered::build(&m, &pcfg).data).to_vec()])
         },
     )?;
     rep.materials_built = n;
@@ -254,29 +274,39 @@ pub fn build_shard(
     Ok(rep)
 }
 
-/// Build this shard's missing chunks of one kind: items in parallel within a chunk, each chunk
-/// written atomically as one array file. Returns the items built and the seconds spent.
+/// One array a chunk build writes per chunk.
+struct Output<'a> {
+    kind: &'a str,
+    name: &'a str,
+    dtype: Dtype,
+    len: usize,
+}
+
+/// Build this shard's missing chunks of one item kind: items in parallel within a chunk, each
+/// chunk written atomically as one array file per output (`item_bytes` returns one byte vector
+/// per output). Returns the items built and the seconds spent.
 #[allow(clippy::too_many_arguments)]
 fn build_chunks<T: Sync>(
     dir: &Path,
-    kind: &str,
-    name: &str,
-    dtype: Dtype,
+    outputs: &[Output],
     items: &[T],
-    len: usize,
     chunk: usize,
     mine: &dyn Fn(usize) -> Vec<usize>,
     progress: &Progress,
     what: &str,
     rep: &mut BuildReport,
-    item_bytes: impl Fn(&T) -> Result<Vec<u8>> + Sync,
+    item_bytes: impl Fn(&T) -> Result<Vec<Vec<u8>>> + Sync,
 ) -> Result<(usize, f64)> {
     let size = |k: usize| chunk.min(items.len() - k * chunk);
     let all = mine(items.len());
     let todo: Vec<usize> = all
         .iter()
         .copied()
-        .filter(|&k| !chunk_ok(&chunk_path(dir, kind, k), &[size(k), len]))
+        .filter(|&k| {
+            !outputs
+                .iter()
+                .all(|o| chunk_ok(&chunk_path(dir, o.kind, k), &[size(k), o.len]))
+        })
         .collect();
     rep.chunks_reused += all.len() - todo.len();
     let bar = progress.bar(todo.iter().map(|&k| size(k)).sum::<usize>() as u64, what);
@@ -284,7 +314,7 @@ fn build_chunks<T: Sync>(
     let mut built = 0;
     for &k in &todo {
         let part = &items[k * chunk..k * chunk + size(k)];
-        let cols: Vec<Vec<u8>> = part
+        let cols: Vec<Vec<Vec<u8>>> = part
             .par_iter()
             .map(|it| {
                 let b = item_bytes(it)?;
@@ -292,13 +322,16 @@ fn build_chunks<T: Sync>(
                 Ok(b)
             })
             .collect::<Result<_>>()?;
-        write_array(
-            &chunk_path(dir, kind, k),
-            name,
-            dtype,
-            &[part.len(), len],
-            &cols.concat(),
-        )?;
+        for (i, o) in outputs.iter().enumerate() {
+            let bytes: Vec<u8> = cols.iter().flat_map(|c| c[i].iter().copied()).collect();
+            write_array(
+                &chunk_path(dir, o.kind, k),
+                o.name,
+                o.dtype,
+                &[part.len(), o.len],
+                &bytes,
+            )?;
+        }
         rep.chunks_built += 1;
         built += part.len();
     }
@@ -306,20 +339,18 @@ fn build_chunks<T: Sync>(
     Ok((built, t.elapsed().as_secs_f64()))
 }
 
-/// The binned BVNDF column of one geometry item, in half precision.
-pub fn geometry_column(
+/// One geometry item's library data, from one pass of view rays: its binned BVNDF column in
+/// half precision and its light-lobe record ([`crate::lightlobes`]).
+pub fn geometry_data(
     it: &GeometryItem,
     layout: &GammaLayout,
-    rays: usize,
-) -> Result<Vec<half::f16>> {
+    prof: &LibraryProfile,
+) -> Result<(Vec<half::f16>, Vec<f32>)> {
     let hf = parse_generator(&it.spec)
         .and_then(|g| g.build())
         .map_err(|e| e.within(format!("geometry item {}", it.index)))?;
-    Ok(layout
-        .column(&hf, rays)
-        .into_iter()
-        .map(half::f16::from_f32)
-        .collect())
+    let (col, lobes) = layout.trace(&hf, prof.geometry.rays, prof.geometry.lobe_clusters);
+    Ok((col.into_iter().map(half::f16::from_f32).collect(), lobes))
 }
 
 /// A library array read as the matrix `B` whose column `j` is item `j` (items stored row-major,
@@ -628,7 +659,7 @@ pub fn merge(
     let mut files = Vec::new();
     let t = Instant::now();
     let bar = progress.bar(
-        (geos.len().div_ceil(prof.chunk) + mats.len().div_ceil(prof.chunk)) as u64,
+        (2 * geos.len().div_ceil(prof.chunk) + mats.len().div_ceil(prof.chunk)) as u64,
         "merge: joining chunks",
     );
     let gpath = dir.join("geometry/gamma.bsa");
@@ -644,6 +675,19 @@ pub fn merge(
         &bar,
     )?;
     files.push(entry(dir, "geometry/gamma.bsa", sum));
+    let lpath = dir.join("geometry/lobes.bsa");
+    let sum = assemble(
+        dir,
+        "lobes",
+        "light-lobes",
+        Dtype::F32,
+        geos.len(),
+        record_len(&layout, prof.geometry.lobe_clusters),
+        prof.chunk,
+        &lpath,
+        &bar,
+    )?;
+    files.push(entry(dir, "geometry/lobes.bsa", sum));
     let mpath = dir.join("material/prefiltered.bsa");
     let sum = assemble(
         dir,

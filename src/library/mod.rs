@@ -159,6 +159,31 @@ pub fn ensure(profile: &str, cache: Option<&Path>, progress: &Progress) -> Resul
     Library::open(&dir)
 }
 
+/// The light lobes of every library geometry ([`crate::lightlobes`]), read from the mapped array.
+pub struct GeometryLobes {
+    file: Arc<ArrayFile>,
+    pub layout: GammaLayout,
+    clusters: usize,
+    len: usize,
+}
+
+impl GeometryLobes {
+    /// Geometry `j`'s lobes (borrowed from the mapping; nothing is copied).
+    pub fn get(&self, j: usize) -> Result<crate::lightlobes::LightLobes<'_>> {
+        let d = self.file.f32s()?;
+        let what = || format!("{} row {j}", self.file.path.display());
+        let rec = d
+            .get(j * self.len..(j + 1) * self.len)
+            .ok_or_else(|| Error::new(what(), "no such geometry"))?;
+        crate::lightlobes::LightLobes::from_record(
+            &self.layout,
+            self.clusters,
+            std::borrow::Cow::Borrowed(rec),
+            &what(),
+        )
+    }
+}
+
 /// Arrays at most this large are checksummed whenever a run opens them.
 pub const VERIFY_BYTES: usize = 128 << 20;
 
@@ -272,6 +297,30 @@ impl Library {
 
     pub fn gamma_layout(&self) -> GammaLayout {
         build::gamma_layout(&self.profile)
+    }
+
+    /// Every geometry's light lobes (`geometry/lobes.bsa`, mapped on first use).
+    pub fn geometry_lobes(&self) -> Result<GeometryLobes> {
+        let file = self.array("geometry/lobes.bsa")?;
+        let layout = self.gamma_layout();
+        let clusters = self.profile.geometry.lobe_clusters;
+        let len = crate::lightlobes::record_len(&layout, clusters);
+        let want = [self.manifest.geometries, len];
+        if file.header.shape != want {
+            return Err(Error::new(
+                file.path.display().to_string(),
+                format!(
+                    "shape {:?} does not match the profile's {:?} (geometries × light-lobe record)",
+                    file.header.shape, want
+                ),
+            ));
+        }
+        Ok(GeometryLobes {
+            file,
+            layout,
+            clusters,
+            len,
+        })
     }
 
     /// Check every file against the manifest (reads everything).

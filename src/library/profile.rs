@@ -40,8 +40,16 @@ pub struct GeometrySection {
     pub normal_grid: usize,
     /// View rays per view node.
     pub rays: usize,
+    /// Normal clusters of each geometry's light lobes ([`crate::lightlobes`]), the per-item data
+    /// the solvers re-rank with.
+    #[serde(default = "default_lobe_clusters")]
+    pub lobe_clusters: usize,
     #[serde(default)]
     pub family: Vec<GeometryFamily>,
+}
+
+fn default_lobe_clusters() -> usize {
+    16
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -296,6 +304,13 @@ impl LibraryProfile {
         pos("geometry.view_phi", g.view_phi, 3)?;
         pos("geometry.normal_grid", g.normal_grid, 3)?;
         pos("geometry.rays", g.rays, 1)?;
+        pos("geometry.lobe_clusters", g.lobe_clusters, 1)?;
+        if g.lobe_clusters > 64 {
+            return Err(Error::new(
+                "geometry.lobe_clusters",
+                format!("expected at most 64, got {}", g.lobe_clusters),
+            ));
+        }
         for (i, f) in g.family.iter().enumerate() {
             let key = format!("geometry.family[{i}]");
             let names: Vec<&str> = crate::generators::list().iter().map(|x| x.0).collect();

@@ -135,25 +135,14 @@ pub fn finalize(
         return Ok(cands);
     }
     let lights = lib.gamma_layout().lights;
-    let f = look.as_fn();
     for c in cands.iter_mut() {
-        let psi = c.psi_deg.to_radians();
-        let rotated = |wi, wo| {
-            f(
-                crate::frame::rotate_z(wi, psi),
-                crate::frame::rotate_z(wo, psi),
-            )
-        };
-        let samples = crate::sampling::sample(&lights, &rotated, &opt.sampling);
-        let target = samples.values(&f, psi);
+        let (samples, target) =
+            super::rotated_samples(look, &lights, c.psi_deg.to_radians(), &opt.sampling);
         let hf = library_heightfield(&c.geometry_spec)?;
         let mat = parse_material(&c.material_spec)?;
         let v = match opt.final_eval {
             Final::Fast => {
-                let pf = crate::prefilter::Prefiltered::build(
-                    &mat,
-                    &super::geometry::prefilter_for(lib),
-                );
+                let pf = super::material_prefiltered(lib, &mat, c.material)?;
                 super::fast_values(&super::bvndf_of(&hf), &pf, &samples)
             }
             _ => exact_values(&hf, &[&mat], &samples, opt.exact_samples).remove(0),

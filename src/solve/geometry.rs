@@ -1,22 +1,27 @@
 //! The geometry solver (Sec. 4.1): the material is fixed; search the geometry library.
 //!
-//! Per rotation `psi_i`: sample the target rotated by `psi_i`, build the material's response to
-//! the binned BVNDF ([`crate::gamma::Response`]), apply it to the representatives' columns, and
-//! get every geometry's approximate `fbar` as representatives × CX weights (Eq. 12). The best
-//! `pool` (geometry, rotation) pairs are re-ranked with their own binned columns, and the best
-//! `k` evaluated with the fast or exact evaluator.
+//! Per rotation `psi_i`: sample the target rotated by `psi_i`, evaluate the representatives'
+//! `fbar` there with their light lobes ([`crate::lightlobes`], stored in the library: nothing is
+//! rebuilt) and the material's prefiltered table, and get every geometry's approximate `fbar` as
+//! representatives × CX weights (Eq. 12: `fbar` is linear in the binned BVNDF the CX weights
+//! were fitted to, so any accurate evaluation of the representatives may be combined). The best
+//! `pool` (geometry, rotation) pairs are re-ranked with their own light lobes, and the best `k`
+//! evaluated with the fast or exact evaluator. With `rerank_fast = false` both stages use the
+//! binned columns instead (the material's [`Response`]), for comparison.
 
 use super::{
-    bvndf_of, exact_values, fast_values, library_heightfield, psi_angle, quick_bvndf_of,
-    search_errors, smallest, Candidate, Final, Look, SolveOptions, SolveResult, SolveStats,
+    bvndf_of, exact_values, fast_values, library_heightfield, material_prefiltered, psi_angle,
+    rotated_samples, search_errors, smallest, Candidate, Final, Look, SolveOptions, SolveResult,
+    SolveStats,
 };
 use crate::error::Result;
 use crate::gamma::Response;
 use crate::library::build::prefilter_config;
+use crate::library::GeometryLobes;
 use crate::library::Library;
 use crate::material::Material;
 use crate::prefilter::{PrefilterConfig, Prefiltered};
-use crate::sampling::{sample, Samples};
+use crate::sampling::Samples;
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -24,7 +29,36 @@ struct Rotation {
     psi: f64,
     samples: Samples,
     target: Vec<f64>,
-    response: Response,
+    /// The material's response to binned columns (only when the search uses them).
+    response: Option<Response>,
+}
+
+/// What stages 1 and 2 evaluate library geometries with.
+enum ItemData {
+    Lobes {
+        lobes: GeometryLobes,
+        pf: Prefiltered,
+    },
+    Binned {
+        gamma: std::sync::Arc<crate::store::ArrayFile>,
+        rows: usize,
+    },
+}
+
+impl ItemData {
+    /// `fbar` of library geometry `j` at rotation `r`'s samples.
+    fn values(&self, j: usize, r: &Rotation) -> Result<Vec<f64>> {
+        match (self, &r.response) {
+            (ItemData::Lobes { lobes, pf }, _) => Ok(fast_values(&lobes.get(j)?, pf, &r.samples)),
+            (ItemData::Binned { gamma, rows }, Some(resp)) => {
+                Ok(resp.apply(&gamma.f16s()?[j * rows..(j + 1) * rows]))
+            }
+            (ItemData::Binned { gamma, .. }, None) => Err(crate::error::Error::new(
+                gamma.path.display().to_string(),
+                "internal: binned search without a material response",
+            )),
+        }
+    }
 }
 
 /// Solve for the geometry with `material` fixed. `material_label` names it in the results.
@@ -40,25 +74,30 @@ pub fn solve(
     let t0 = Instant::now();
     let items = lib.geometry_items()?;
     let layout = lib.gamma_layout();
-    let gamma = lib.array("geometry/gamma.bsa")?;
     let reps = lib.array("geometry/representatives.bsa")?;
     let xs = lib.array("geometry/x.bsa")?;
-    let (gamma, reps, xs) = (gamma.f16s()?, reps.u32s()?, xs.f32s()?);
-    let rows = layout.rows();
-    let column = |j: usize| &gamma[j * rows..(j + 1) * rows];
-    let f = look.as_fn();
+    let (reps, xs) = (reps.u32s()?, xs.f32s()?);
+    // The item data of stages 1 and 2: light lobes with the material's prefiltered table, or
+    // (`rerank_fast = false`, for comparison) binned columns with the material's response.
+    let data = if opt.rerank_fast {
+        ItemData::Lobes {
+            lobes: lib.geometry_lobes()?,
+            pf: material_prefiltered(lib, material, material_index)?,
+        }
+    } else {
+        ItemData::Binned {
+            gamma: lib.array("geometry/gamma.bsa")?,
+            rows: layout.rows(),
+        }
+    };
     let rots: Vec<Rotation> = (0..opt.psi.max(1))
         .map(|i| {
             let psi = psi_angle(i, opt.psi);
-            let rotated = |wi, wo| {
-                f(
-                    crate::frame::rotate_z(wi, psi),
-                    crate::frame::rotate_z(wo, psi),
-                )
+            let (samples, target) = rotated_samples(look, &layout.lights, psi, &opt.sampling);
+            let response = match data {
+                ItemData::Binned { .. } => Some(Response::new(&layout, material, &samples.pairs)),
+                ItemData::Lobes { .. } => None,
             };
-            let samples = sample(&layout.lights, &rotated, &opt.sampling);
-            let target = samples.values(&f, psi);
-            let response = Response::new(&layout, material, &samples.pairs);
             Rotation {
                 psi,
                 samples,
@@ -67,13 +106,13 @@ pub fn solve(
             }
         })
         .collect();
-    // Stage 1: representatives × X for every geometry and rotation.
+    // Stage 1: representatives' `fbar` × X for every geometry and rotation (Eq. 12).
     let mut scored: Vec<(f64, usize, usize)> = Vec::new();
     for (ri, r) in rots.iter().enumerate() {
         let a: Vec<Vec<f64>> = reps
             .par_iter()
-            .map(|&k| r.response.apply(column(k as usize)))
-            .collect();
+            .map(|&k| data.values(k as usize, r))
+            .collect::<Result<_>>()?;
         let e = search_errors(&r.samples, &r.target, &a, xs, items.len());
         scored.extend(e.into_iter().enumerate().map(|(j, e)| (e, j, ri)));
     }
@@ -82,27 +121,14 @@ pub fn solve(
     stats.search_seconds = t0.elapsed().as_secs_f64();
     let errs: Vec<f64> = scored.iter().map(|s| s.0).collect();
     let pool = smallest(&errs, opt.pool.max(opt.k));
-    // Stage 2: each pooled geometry's own data: a quick compact BVNDF with the fast evaluator,
-    // or its binned column.
+    // Stage 2: each pooled geometry's own data.
     let t1 = Instant::now();
-    let quick_pf = if opt.rerank_fast {
-        Some(Prefiltered::build(material, &prefilter_for(lib)))
-    } else {
-        None
-    };
     let mut reranked: Vec<(f64, f64, usize, usize)> = pool
-        .iter()
+        .par_iter()
         .map(|&i| {
             let (se, j, ri) = scored[i];
             let r = &rots[ri];
-            let v = match &quick_pf {
-                Some(pf) => fast_values(
-                    &quick_bvndf_of(&library_heightfield(&items[j].spec)?),
-                    pf,
-                    &r.samples,
-                ),
-                None => r.response.apply(column(j)),
-            };
+            let v = data.values(j, r)?;
             Ok((r.samples.rel_error(&r.target, &v), se, j, ri))
         })
         .collect::<Result<_>>()?;
@@ -111,27 +137,25 @@ pub fn solve(
     stats.rerank_seconds = t1.elapsed().as_secs_f64();
     // Stage 3: the final evaluator.
     let t2 = Instant::now();
-    let pf = match opt.final_eval {
-        Final::Fast => Some(
-            quick_pf
-                .clone()
-                .unwrap_or_else(|| Prefiltered::build(material, &prefilter_for(lib))),
-        ),
-        Final::Exact | Final::Library => None,
-    };
     let colour = crate::library::items::average_colour(material);
     let mut out: Vec<Candidate> = reranked
         .iter()
         .map(|&(re, se, j, ri)| {
             let r = &rots[ri];
-            let error = match (opt.final_eval, &pf) {
-                (Final::Library, _) => re,
-                (_, Some(pf)) => {
+            let error = match opt.final_eval {
+                Final::Library => re,
+                Final::Fast => {
                     let hf = library_heightfield(&items[j].spec)?;
+                    let pf = match &data {
+                        ItemData::Lobes { pf, .. } => pf.clone(),
+                        ItemData::Binned { .. } => {
+                            material_prefiltered(lib, material, material_index)?
+                        }
+                    };
                     r.samples
-                        .rel_error(&r.target, &fast_values(&bvndf_of(&hf), pf, &r.samples))
+                        .rel_error(&r.target, &fast_values(&bvndf_of(&hf), &pf, &r.samples))
                 }
-                _ => {
+                Final::Exact => {
                     let hf = library_heightfield(&items[j].spec)?;
                     let v = exact_values(&hf, &[material], &r.samples, opt.exact_samples).remove(0);
                     r.samples.rel_error(&r.target, &v)

@@ -1,22 +1,24 @@
 //! The material solver (Sec. 4.2): the geometry is fixed; search the material library.
 //!
-//! The geometry's compact BVNDF gives, at every sample, a few vMF lobes; `fbar` of a material is
+//! The geometry's light lobes ([`crate::lightlobes`]: the library's stored record for a library
+//! geometry, else built once from its heightfield) give, at every sample, a few vMF lobes; `fbar` of a material is
 //! then `Σ_c w_c F(κ_c, μ_c)` of its prefiltered table (Eq. 6). That is evaluated for the
 //! representative materials only; every material's value is representatives × CX weights. The
 //! score adds the colour term of Eq. 13: `(1 - β) e² + β |λ̂ - λ|² / |λ̂|²` with `e` the relative
 //! error and `λ` the material's average colour under its best colour shift.
 
 use super::{
-    bvndf_of, exact_values, fast_values, search_errors, smallest, Candidate, Final, Look,
-    SolveOptions, SolveResult, SolveStats,
+    exact_values, fast_values, rotated_samples, search_errors, smallest, Candidate, Final, Look,
+    SolveOptions, SolveResult, SolveStats, LIGHT_LOBE_RAYS,
 };
+use crate::bvndf::LobeSource;
 use crate::error::Result;
 use crate::heightfield::Heightfield;
 use crate::library::build::prefilter_config;
 use crate::library::Library;
+use crate::lightlobes::LightLobes;
 use crate::material::{parse_material, Material};
 use crate::prefilter::Prefiltered;
-use crate::sampling::sample;
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -44,7 +46,9 @@ fn best_colour(base: [f32; 3], shifts: &[f32], target: Option<[f64; 3]>) -> (usi
 }
 
 /// Solve for the material on the fixed geometry `hf` (rotated by `psi_deg`: the samples are read
-/// in the rotated frame). `geometry_label` names it in the results.
+/// in the rotated frame). `geometry_label` names it in the results. With `geometry_index`, `hf`
+/// is that library geometry and its stored light lobes are used; without, they are built from
+/// `hf` ([`LIGHT_LOBE_RAYS`] rays per view node).
 pub fn solve(
     lib: &Library,
     look: &Look,
@@ -72,24 +76,30 @@ pub fn solve(
         shifts.f32s()?,
     );
     let ns = lib.manifest.colours_per_material * 3;
-    let psi = psi_deg.to_radians();
-    let f = look.as_fn();
-    let rotated = |wi, wo| {
-        f(
-            crate::frame::rotate_z(wi, psi),
-            crate::frame::rotate_z(wo, psi),
-        )
+    let layout = lib.gamma_layout();
+    let (samples, target) =
+        rotated_samples(look, &layout.lights, psi_deg.to_radians(), &opt.sampling);
+    let stored;
+    let geo: Box<dyn LobeSource + Sync> = match geometry_index {
+        Some(j) => {
+            stored = lib.geometry_lobes()?;
+            Box::new(stored.get(j)?)
+        }
+        None => Box::new(LightLobes::build(
+            &layout,
+            hf,
+            LIGHT_LOBE_RAYS,
+            lib.profile.geometry.lobe_clusters,
+        )),
     };
-    let samples = sample(&lib.gamma_layout().lights, &rotated, &opt.sampling);
-    let target = samples.values(&f, psi);
-    let geo = bvndf_of(hf);
+    let geo = geo.as_ref();
     let prefiltered = |m: usize| -> Result<Prefiltered> {
         let mat = parse_material(&items[m].spec)?;
         Prefiltered::from_table(&mat, &cfg, tables[m * tlen..(m + 1) * tlen].to_vec())
     };
     let a: Vec<Vec<f64>> = reps
         .par_iter()
-        .map(|&k| Ok(fast_values(&geo, &prefiltered(k as usize)?, &samples)))
+        .map(|&k| Ok(fast_values(geo, &prefiltered(k as usize)?, &samples)))
         .collect::<Result<_>>()?;
     let e = search_errors(&samples, &target, &a, xs, items.len());
     let beta = opt.beta.clamp(0.0, 1.0);
@@ -113,7 +123,7 @@ pub fn solve(
     let mut reranked: Vec<(f64, f64, usize)> = pool
         .par_iter()
         .map(|&m| {
-            let v = fast_values(&geo, &prefiltered(m)?, &samples);
+            let v = fast_values(geo, &prefiltered(m)?, &samples);
             let re = samples.rel_error(&target, &v);
             Ok((score(m, re).0, re, m))
         })
@@ -133,10 +143,14 @@ pub fn solve(
             let refs: Vec<&Material> = mats.iter().collect();
             exact_values(hf, &refs, &samples, opt.exact_samples)
         }
-        Final::Fast => reranked
-            .iter()
-            .map(|r| Ok(fast_values(&geo, &prefiltered(r.2)?, &samples)))
-            .collect::<Result<_>>()?,
+        Final::Fast => {
+            // The forward model's full compact BVNDF, as the other solvers' fast final stage.
+            let full = super::bvndf_of(hf);
+            reranked
+                .iter()
+                .map(|r| Ok(fast_values(&full, &prefiltered(r.2)?, &samples)))
+                .collect::<Result<_>>()?
+        }
     };
     let mut out: Vec<(f64, Candidate)> = reranked
         .iter()

@@ -52,9 +52,9 @@ pub struct SolveOptions {
     pub k: usize,
     /// Items re-ranked with their own uncompressed data (stage 2).
     pub pool: usize,
-    /// Geometry solver, stage 2: re-rank with a quick compact BVNDF of each pooled geometry and
-    /// the fast evaluator instead of its binned column (slower, far more accurate for glossy
-    /// materials).
+    /// Geometry solver, stages 1 and 2: evaluate library geometries with their stored light
+    /// lobes and the fast evaluator (the default; accurate for glossy materials), instead of
+    /// their binned columns.
     pub rerank_fast: bool,
     /// Rotations tried by the geometry solver.
     pub psi: usize,
@@ -70,7 +70,7 @@ impl Default for SolveOptions {
     fn default() -> Self {
         SolveOptions {
             k: 5,
-            pool: 16,
+            pool: 64,
             rerank_fast: true,
             psi: 1,
             beta: 0.0,
@@ -131,7 +131,11 @@ pub fn dir_pairs(s: &Samples) -> Vec<DirPair> {
 }
 
 /// `fbar` of a compact BVNDF with a prefiltered material at every sample.
-pub fn fast_values(geo: &CompactBvndf, mat: &Prefiltered, s: &Samples) -> Vec<f64> {
+pub fn fast_values<G: crate::bvndf::LobeSource + ?Sized>(
+    geo: &G,
+    mat: &Prefiltered,
+    s: &Samples,
+) -> Vec<f64> {
     crate::fast::fbar(geo, mat, &dir_pairs(s))
 }
 
@@ -140,18 +144,55 @@ pub fn bvndf_of(hf: &Heightfield) -> CompactBvndf {
     CompactBvndf::build(hf, &BvndfConfig::default())
 }
 
-/// A quicker compact BVNDF for re-ranking a pool: a quarter of the rays, all 16 lobes (with
-/// glossy materials the lobe count matters more than the ray count, and costs little build time).
-pub fn quick_bvndf_of(hf: &Heightfield) -> CompactBvndf {
-    CompactBvndf::build(
-        hf,
-        &BvndfConfig {
-            rays: 256,
-            clusters: 16,
-            ..BvndfConfig::default()
-        },
-    )
+/// The samples of `look` rotated by `psi` (radians) at the library's `lights`, and the target
+/// values there: the geometry rotated by `psi` seen in its own frame (Sec. 6).
+pub fn rotated_samples(
+    look: &Look,
+    lights: &[Vec3],
+    psi: f64,
+    cfg: &crate::sampling::SamplingConfig,
+) -> (Samples, Vec<f64>) {
+    let f = look.as_fn();
+    let rotated = |wi, wo| {
+        f(
+            crate::frame::rotate_z(wi, psi),
+            crate::frame::rotate_z(wo, psi),
+        )
+    };
+    let samples = crate::sampling::sample(lights, &rotated, cfg);
+    let target = samples.values(&f, psi);
+    (samples, target)
 }
+
+/// The prefiltered table of a material: the library's stored table when it is library material
+/// `index`, else built with the library's prefilter settings (0.1–0.3 s).
+pub fn material_prefiltered(
+    lib: &crate::library::Library,
+    mat: &Material,
+    index: Option<usize>,
+) -> Result<Prefiltered> {
+    let cfg = crate::library::build::prefilter_config(&lib.profile);
+    match index {
+        Some(m) => {
+            let tlen = lib.manifest.table_len;
+            let tables = lib.array("material/prefiltered.bsa")?;
+            let t = tables
+                .f32s()?
+                .get(m * tlen..(m + 1) * tlen)
+                .ok_or_else(|| {
+                    crate::error::Error::new(
+                        tables.path.display().to_string(),
+                        format!("no material {m}"),
+                    )
+                })?;
+            Prefiltered::from_table(mat, &cfg, t.to_vec())
+        }
+        None => Ok(Prefiltered::build(mat, &cfg)),
+    }
+}
+
+/// View rays per view node of the light lobes built for a geometry outside the library.
+pub const LIGHT_LOBE_RAYS: usize = 1024;
 
 /// `fbar` of several materials on one geometry with the exact evaluator (shared rays).
 pub fn exact_values(

@@ -1,0 +1,250 @@
+//! The compact BVNDF at the library's fixed lights: each library geometry's own accurate data,
+//! with which the solvers re-rank candidates without rebuilding anything.
+//!
+//! The binned column of [`crate::gamma`] is linear in `gamma` (what the compressed search needs)
+//! but its normal grid cannot resolve narrow material lobes. The full compact BVNDF of
+//! [`crate::bvndf`] can, but tabulates every pair of 160 grid directions and takes 0.1–0.8 s to
+//! build. Every solver sample is lit from one of the library's 7 lights ([`crate::sampling`]), so
+//! the light side need not be tabulated: per light `l`, per view node `b` of the library's
+//! [`DirGrid`] and per normal cluster `c`, this table stores the moments of
+//! [`crate::bvndf`] of the area seen from `w_b` and lit from `w_l`, `G1 = Σ A n` and
+//! `G2 = Σ A n nᵀ` (9 numbers), plus the moments `G1` of the area seen from `w_b` alone (the
+//! visible projected area `a_v`). They are accumulated in the same pass of view rays as the
+//! binned column ([`GammaLayout::trace`]), so a library build gets them almost for free, and
+//! lobes are assembled from them exactly as from the full table
+//! ([`crate::bvndf::assemble_lobes`]) with the light direction exact instead of interpolated.
+//!
+//! One geometry's record (`f32`), for `K` clusters, `L` lights and `V` view nodes:
+//!
+//! | part | length | content |
+//! |---|---|---|
+//! | clusters | `K × 5` | unit centre (x, y, z), planar flag (0 or 1), area in units of `A_base` |
+//! | seen | `V × K × 3` | `G1` of the area seen from `w_b` |
+//! | lit | `L × V × K × 9` | `G1`, `G2` (xx, yy, zz, xy, xz, yz) of the area seen from `w_b` and lit from `w_l` |
+//!
+//! Clusters beyond the geometry's distinct normals have zero area and zero moments.
+
+use crate::bvndf::{assemble_lobes, Clusters, LobeSource, STRIDE};
+use crate::error::{Error, Result};
+use crate::frame::Vec3;
+use crate::gamma::GammaLayout;
+use crate::heightfield::Heightfield;
+use crate::vmf::Vmf;
+use std::borrow::Cow;
+
+/// Floats per cluster in the record's header.
+pub(crate) const HEAD: usize = 5;
+
+/// Length of one geometry's record.
+pub fn record_len(layout: &GammaLayout, clusters: usize) -> usize {
+    let (l, v) = (layout.lights.len(), layout.views.len());
+    clusters * (HEAD + v * 3 + l * v * STRIDE)
+}
+
+/// The compact BVNDF of one geometry at the library's lights.
+#[derive(Debug, Clone)]
+pub struct LightLobes<'a> {
+    layout: &'a GammaLayout,
+    clusters: usize,
+    centres: Vec<Vec3>,
+    planar: Vec<bool>,
+    area: Vec<f64>,
+    record: Cow<'a, [f32]>,
+}
+
+impl<'a> LightLobes<'a> {
+    /// Trace `hf` with about `rays` view rays per view node and `clusters` normal clusters.
+    pub fn build(layout: &'a GammaLayout, hf: &Heightfield, rays: usize, clusters: usize) -> Self {
+        let (_, record) = layout.trace(hf, rays, clusters.max(1));
+        // The record was just built with this layout: its length and header are right.
+        Self::parse(layout, clusters.max(1), Cow::Owned(record))
+    }
+
+    /// A stored record (for example a row of a library's `geometry/lobes.bsa`). `what` names it
+    /// in errors.
+    pub fn from_record(
+        layout: &'a GammaLayout,
+        clusters: usize,
+        record: Cow<'a, [f32]>,
+        what: &str,
+    ) -> Result<Self> {
+        let want = record_len(layout, clusters);
+        if clusters == 0 || record.len() != want {
+            return Err(Error::new(
+                what,
+                format!(
+                    "a light-lobe record of {} floats does not match {} clusters ({} expected)",
+                    record.len(),
+                    clusters,
+                    want
+                ),
+            ));
+        }
+        for (c, h) in record[..clusters * HEAD].chunks(HEAD).enumerate() {
+            if h.iter().any(|x| !x.is_finite()) || h[4] < 0.0 {
+                return Err(Error::new(
+                    what,
+                    format!("cluster {c} has a non-finite centre or a negative area"),
+                ));
+            }
+        }
+        Ok(Self::parse(layout, clusters, record))
+    }
+
+    fn parse(layout: &'a GammaLayout, clusters: usize, record: Cow<'a, [f32]>) -> Self {
+        let head = &record[..clusters * HEAD];
+        let centres = head
+            .chunks(HEAD)
+            .map(|h| {
+                let v = Vec3::new(h[0] as f64, h[1] as f64, h[2] as f64);
+                if v.norm() > 0.0 {
+                    v.normalized()
+                } else {
+                    Vec3::Z
+                }
+            })
+            .collect();
+        let planar = head.chunks(HEAD).map(|h| h[3] > 0.5).collect();
+        let area = head.chunks(HEAD).map(|h| h[4] as f64).collect();
+        LightLobes {
+            layout,
+            clusters,
+            centres,
+            planar,
+            area,
+            record,
+        }
+    }
+
+    /// The stored form.
+    pub fn record(&self) -> &[f32] {
+        &self.record
+    }
+
+    /// Bytes of the stored form.
+    pub fn bytes(&self) -> usize {
+        self.record.len() * 4
+    }
+
+    #[inline]
+    fn seen(&self, b: usize, c: usize) -> &[f32] {
+        let off = self.clusters * HEAD + (b * self.clusters + c) * 3;
+        &self.record[off..off + 3]
+    }
+
+    #[inline]
+    fn lit(&self, l: usize, b: usize, c: usize) -> &[f32] {
+        let nv = self.layout.views.len();
+        let off = self.clusters * (HEAD + nv * 3) + ((l * nv + b) * self.clusters + c) * STRIDE;
+        &self.record[off..off + STRIDE]
+    }
+}
+
+impl LobeSource for LightLobes<'_> {
+    /// The lobes of `gamma(·; wi, wo)`. Defined only where `wi` is one of the library's lights
+    /// (to 1e-9); elsewhere, and at or below the horizon, there are none.
+    fn lobes(&self, wi: Vec3, wo: Vec3, out: &mut Vec<(f64, Vmf)>) {
+        out.clear();
+        if wo.z <= 0.0 {
+            return;
+        }
+        let Some(l) = self.layout.light_index(wi) else {
+            return;
+        };
+        let wb = self.layout.views.weights(wo);
+        let mut diag = 0.0;
+        for &(b, vb) in &wb {
+            if vb == 0.0 {
+                continue;
+            }
+            for c in 0..self.clusters {
+                let e = self.seen(b, c);
+                diag += vb * (wo.x * e[0] as f64 + wo.y * e[1] as f64 + wo.z * e[2] as f64);
+            }
+        }
+        let cl = Clusters {
+            centres: &self.centres,
+            planar: &self.planar,
+            area: &self.area,
+        };
+        assemble_lobes(
+            &cl,
+            wi,
+            wo,
+            &[(l, 1.0)],
+            |_| wi,
+            &wb,
+            |b| self.layout.views.direction(b),
+            |a, b, c| self.lit(a, b, c),
+            diag,
+            out,
+        );
+    }
+
+    fn clusters(&self) -> usize {
+        self.clusters
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bvndf::{BvndfConfig, CompactBvndf};
+    use crate::frame::{dir_from_deg, DirPair};
+    use crate::generators::parse_generator;
+    use crate::material::parse_material;
+    use crate::prefilter::{PrefilterConfig, Prefiltered};
+
+    #[test]
+    fn flat_patch_is_exact_and_record_length_is_checked() {
+        let lay = GammaLayout::new(6, 8, 9);
+        let hf = Heightfield::flat(16, 16);
+        let ll = LightLobes::build(&lay, &hf, 64, 4);
+        assert_eq!(ll.record().len(), record_len(&lay, 4));
+        let mut out = Vec::new();
+        ll.lobes(lay.lights[3], dir_from_deg(50.0, 100.0), &mut out);
+        let total: f64 = out.iter().map(|x| x.0).sum();
+        assert!((total - 1.0).abs() < 1e-6, "{out:?}");
+        // Not a library light: no lobes.
+        ll.lobes(dir_from_deg(1.0, 2.0), dir_from_deg(50.0, 100.0), &mut out);
+        assert!(out.is_empty());
+        let short = ll.record()[..10].to_vec();
+        let e = LightLobes::from_record(&lay, 4, Cow::Owned(short), "x.bsa row 3").unwrap_err();
+        assert!(e.to_string().contains("x.bsa row 3"), "{e}");
+    }
+
+    #[test]
+    fn agrees_with_the_full_compact_bvndf_at_the_library_lights() {
+        let lay = GammaLayout::new(10, 16, 16);
+        let pf = Prefiltered::build(
+            &parse_material("ggx:alpha=0.1+lambert:albedo=0.1").unwrap(),
+            &PrefilterConfig::default(),
+        );
+        for spec in [
+            "bumps:n=48,count=6,radius=8,height=3,seed=2",
+            "vgroove:n=48,period=16,depth=4",
+        ] {
+            let hf = parse_generator(spec).unwrap().build().unwrap();
+            let ll = LightLobes::build(&lay, &hf, 1024, 16);
+            let full = CompactBvndf::build(&hf, &BvndfConfig::default());
+            let pairs: Vec<DirPair> = (0..7)
+                .flat_map(|l| {
+                    let wi = lay.lights[l];
+                    [(20.0, 30.0), (45.0, 170.0), (70.0, 290.0)]
+                        .into_iter()
+                        .map(move |(t, p)| DirPair {
+                            wi,
+                            wo: dir_from_deg(t, p),
+                        })
+                })
+                .collect();
+            let a = crate::fast::fbar(&ll, &pf, &pairs);
+            let b = crate::fast::fbar(&full, &pf, &pairs);
+            let rel = crate::bench::relative_rms(&a, &b);
+            assert!(
+                rel < 0.05,
+                "{spec}: light lobes vs full compact BVNDF {rel}"
+            );
+        }
+    }
+}
