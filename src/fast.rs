@@ -37,3 +37,43 @@ pub fn fbar<G: LobeSource + ?Sized>(geo: &G, mat: &Prefiltered, pairs: &[DirPair
         .map(|p| fbar_one(geo, mat, p, &mut scratch))
         .collect()
 }
+
+/// The lobes of one geometry at a fixed set of pairs, assembled once: evaluating many materials
+/// on the same geometry (the material solver) then costs only the `F` reads.
+pub struct FixedLobes {
+    pairs: Vec<DirPair>,
+    lobes: Vec<Vec<(f64, Vmf)>>,
+}
+
+impl FixedLobes {
+    pub fn new<G: LobeSource + ?Sized>(geo: &G, pairs: &[DirPair]) -> Self {
+        let lobes = pairs
+            .iter()
+            .map(|p| {
+                let mut l = Vec::with_capacity(geo.clusters());
+                geo.lobes(p.wi, p.wo, &mut l);
+                l
+            })
+            .collect();
+        FixedLobes {
+            pairs: pairs.to_vec(),
+            lobes,
+        }
+    }
+
+    /// `fbar` of `mat` at every pair; equal to [`fbar`] on the geometry.
+    pub fn fbar(&self, mat: &Prefiltered) -> Vec<f64> {
+        self.pairs
+            .iter()
+            .zip(&self.lobes)
+            .map(|(p, lobes)| {
+                let s: f64 = lobes.iter().map(|(w, l)| w * mat.eval(p.wi, p.wo, l)).sum();
+                if s.is_finite() && s > 0.0 {
+                    s
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    }
+}

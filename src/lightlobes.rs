@@ -240,6 +240,8 @@ mod tests {
                 .collect();
             let a = crate::fast::fbar(&ll, &pf, &pairs);
             let b = crate::fast::fbar(&full, &pf, &pairs);
+            let fixed = crate::fast::FixedLobes::new(&ll, &pairs).fbar(&pf);
+            assert_eq!(a, fixed, "lobes assembled once give the same fbar");
             let rel = crate::bench::relative_rms(&a, &b);
             assert!(
                 rel < 0.05,

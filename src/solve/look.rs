@@ -4,8 +4,9 @@
 
 use crate::error::{Error, Result};
 use crate::frame::{DirPair, Vec3};
+use crate::sampling::Samples;
 use crate::target::{Target, TargetBase};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 /// A target look: `fbar(wi, wo)` and its average colour.
 #[derive(Clone)]
@@ -14,6 +15,8 @@ pub struct Look {
     f: Arc<dyn Fn(Vec3, Vec3) -> f64 + Send + Sync>,
     /// Target average colour `lambda` (Eq. 13), if any.
     pub colour: Option<[f64; 3]>,
+    /// Sample sets already drawn for this look (see [`Look::memo`]), shared by clones.
+    memo: Arc<Mutex<Vec<(Vec<u64>, Arc<(Samples, Vec<f64>)>)>>>,
 }
 
 impl std::fmt::Debug for Look {
@@ -61,6 +64,7 @@ impl Look {
             name: spec.to_string(),
             f: Arc::new(move |wi, wo| t.fbar(wi, wo)),
             colour: colour.or(own),
+            memo: Arc::default(),
         })
     }
 
@@ -74,7 +78,31 @@ impl Look {
             name: name.to_string(),
             f: Arc::new(f),
             colour,
+            memo: Arc::default(),
         }
+    }
+
+    /// The sample set stored under `key` (drawn by `make` the first time). Drawing samples
+    /// evaluates the look a few tens of thousands of times (the gradient of importance
+    /// sampling); the general solver asks for the same set at every iteration.
+    pub fn memo(
+        &self,
+        key: Vec<u64>,
+        make: impl FnOnce() -> (Samples, Vec<f64>),
+    ) -> Arc<(Samples, Vec<f64>)> {
+        if let Some(hit) = self
+            .memo
+            .lock()
+            .ok()
+            .and_then(|m| m.iter().find(|e| e.0 == key).map(|e| e.1.clone()))
+        {
+            return hit;
+        }
+        let v = Arc::new(make());
+        if let Ok(mut m) = self.memo.lock() {
+            m.push((key, v.clone()));
+        }
+        v
     }
 
     /// `fbar(wi, wo)`.

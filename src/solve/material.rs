@@ -92,14 +92,15 @@ pub fn solve(
             lib.profile.geometry.lobe_clusters,
         )),
     };
-    let geo = geo.as_ref();
+    // The geometry is fixed: its lobes at the samples are assembled once for every material.
+    let fixed = crate::fast::FixedLobes::new(geo.as_ref(), &super::dir_pairs(&samples));
     let prefiltered = |m: usize| -> Result<Prefiltered> {
         let mat = parse_material(&items[m].spec)?;
         Prefiltered::from_table(&mat, &cfg, tables[m * tlen..(m + 1) * tlen].to_vec())
     };
     let a: Vec<Vec<f64>> = reps
         .par_iter()
-        .map(|&k| Ok(fast_values(geo, &prefiltered(k as usize)?, &samples)))
+        .map(|&k| Ok(fixed.fbar(&prefiltered(k as usize)?)))
         .collect::<Result<_>>()?;
     let e = search_errors(&samples, &target, &a, xs, items.len());
     let beta = opt.beta.clamp(0.0, 1.0);
@@ -123,7 +124,7 @@ pub fn solve(
     let mut reranked: Vec<(f64, f64, usize)> = pool
         .par_iter()
         .map(|&m| {
-            let v = fast_values(geo, &prefiltered(m)?, &samples);
+            let v = fixed.fbar(&prefiltered(m)?);
             let re = samples.rel_error(&target, &v);
             Ok((score(m, re).0, re, m))
         })

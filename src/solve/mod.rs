@@ -70,7 +70,7 @@ impl Default for SolveOptions {
     fn default() -> Self {
         SolveOptions {
             k: 5,
-            pool: 64,
+            pool: 256,
             rerank_fast: true,
             psi: 1,
             beta: 0.0,
@@ -145,23 +145,38 @@ pub fn bvndf_of(hf: &Heightfield) -> CompactBvndf {
 }
 
 /// The samples of `look` rotated by `psi` (radians) at the library's `lights`, and the target
-/// values there: the geometry rotated by `psi` seen in its own frame (Sec. 6).
+/// values there: the geometry rotated by `psi` seen in its own frame (Sec. 6). Drawn once per
+/// look and settings ([`Look::memo`]).
 pub fn rotated_samples(
     look: &Look,
     lights: &[Vec3],
     psi: f64,
     cfg: &crate::sampling::SamplingConfig,
 ) -> (Samples, Vec<f64>) {
-    let f = look.as_fn();
-    let rotated = |wi, wo| {
-        f(
-            crate::frame::rotate_z(wi, psi),
-            crate::frame::rotate_z(wo, psi),
-        )
-    };
-    let samples = crate::sampling::sample(lights, &rotated, cfg);
-    let target = samples.values(&f, psi);
-    (samples, target)
+    let mut key = vec![
+        psi.to_bits(),
+        cfg.views_per_light as u64,
+        cfg.gradient_share.to_bits(),
+        cfg.seed,
+    ];
+    key.extend(
+        lights
+            .iter()
+            .flat_map(|l| [l.x, l.y, l.z].map(f64::to_bits)),
+    );
+    let v = look.memo(key, || {
+        let f = look.as_fn();
+        let rotated = |wi, wo| {
+            f(
+                crate::frame::rotate_z(wi, psi),
+                crate::frame::rotate_z(wo, psi),
+            )
+        };
+        let samples = crate::sampling::sample(lights, &rotated, cfg);
+        let target = samples.values(&f, psi);
+        (samples, target)
+    });
+    (v.0.clone(), v.1.clone())
 }
 
 /// The prefiltered table of a material: the library's stored table when it is library material
