@@ -1,5 +1,6 @@
-//! The general solver (Sec. 4.3): geometry and material both unknown. From a start (a given or
-//! seeded random material), alternate the material-fixed geometry solve and the geometry-fixed
+//! The general solver (Sec. 4.3): geometry and material both unknown. From a start (a given
+//! material, else the library material closest to the look on a flat patch, then seeded random
+//! materials), alternate the material-fixed geometry solve and the geometry-fixed
 //! material solve, each returning its best, until a (geometry, rotation, material) repeats or the
 //! iteration limit; several starts; the best distinct combinations of all starts are evaluated
 //! with the final evaluator.
@@ -58,9 +59,21 @@ pub fn explore(
     let mut rng = Rng::new(g.seed);
     let mut seen: Vec<Candidate> = Vec::new();
     let mut stats = SolveStats::default();
+    // Starts: the given material, else the material that best reproduces the look on a flat
+    // patch (the material solver on a flat heightfield: the look as a plain BRDF); then seeded
+    // random materials.
+    let first = match g.start_material {
+        Some(m) => Some(m.min(mats.len() - 1)),
+        None => {
+            let flat = crate::heightfield::Heightfield::flat(16, 16);
+            let r = super::material::solve(lib, look, &flat, "flat", None, 0.0, &inner)?;
+            accumulate(&mut stats, &r.stats);
+            r.candidates.first().and_then(|c| c.material)
+        }
+    };
     for s in 0..g.starts.max(1) {
-        let mut m = match (s, g.start_material) {
-            (0, Some(m)) => m.min(mats.len() - 1),
+        let mut m = match (s, first) {
+            (0, Some(m)) => m,
             _ => rng.below(mats.len() as u64) as usize,
         };
         let mut last: Option<(usize, i64, usize)> = None;
