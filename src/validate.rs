@@ -247,50 +247,53 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
             rotated_samples(&look, &lights, psi, &opt.sampling);
         }
         sampling_secs.push(t.elapsed().as_secs_f64());
-        let t = Instant::now();
-        let r = crate::solve::geometry::solve(lib, &look, &mat, &mi[m].spec, Some(m), &opt)?;
-        let secs = t.elapsed().as_secs_f64();
-        let best = r.candidates.first();
-        tg.add(
-            verified(lib, &look, best, (g, m), &opt)?,
-            best.and_then(|b| b.geometry) == Some(g),
-            secs,
-        );
-        let t = Instant::now();
-        let ex = exhaustive_geometry(lib, &look, m, &opt)?;
-        let secs = t.elapsed().as_secs_f64();
-        eg.add(
-            verified(lib, &look, Some(&ex), (g, m), &opt)?,
-            ex.geometry == Some(g),
-            secs,
-        );
+        // Run one solver (timed), verify its answer (untimed) and count it.
+        let run = |tally: &mut Tally,
+                   solve: &dyn Fn() -> Result<Option<Candidate>>,
+                   recovered: &dyn Fn(&Candidate) -> bool|
+         -> Result<()> {
+            let t = Instant::now();
+            let best = solve()?;
+            let secs = t.elapsed().as_secs_f64();
+            let err = verified(lib, &look, best.as_ref(), (g, m), &opt)?;
+            tally.add(err, best.as_ref().is_some_and(recovered), secs);
+            Ok(())
+        };
+        let first = |r: crate::solve::SolveResult| r.candidates.into_iter().next();
+        let is_g = |b: &Candidate| b.geometry == Some(g);
+        let is_m = |b: &Candidate| b.material == Some(m);
         let hf = library_heightfield(&gi[g].spec)?;
-        let t = Instant::now();
-        let r = crate::solve::material::solve(lib, &look, &hf, &gi[g].spec, Some(g), 0.0, &opt)?;
-        let secs = t.elapsed().as_secs_f64();
-        let best = r.candidates.first();
-        tm.add(
-            verified(lib, &look, best, (g, m), &opt)?,
-            best.and_then(|b| b.material) == Some(m),
-            secs,
-        );
-        let t = Instant::now();
-        let ex = exhaustive_material(lib, &look, g, &opt)?;
-        let secs = t.elapsed().as_secs_f64();
-        em.add(
-            verified(lib, &look, Some(&ex), (g, m), &opt)?,
-            ex.material == Some(m),
-            secs,
-        );
-        let t = Instant::now();
-        let r = crate::solve::general::solve(lib, &look, &opt, &job.general)?;
-        let secs = t.elapsed().as_secs_f64();
-        let best = r.candidates.first();
-        tgen.add(
-            verified(lib, &look, best, (g, m), &opt)?,
-            best.is_some_and(|b| b.geometry == Some(g) && b.material == Some(m)),
-            secs,
-        );
+        run(
+            &mut tg,
+            &|| {
+                crate::solve::geometry::solve(lib, &look, &mat, &mi[m].spec, Some(m), &opt)
+                    .map(first)
+            },
+            &is_g,
+        )?;
+        run(
+            &mut eg,
+            &|| exhaustive_geometry(lib, &look, m, &opt).map(Some),
+            &is_g,
+        )?;
+        run(
+            &mut tm,
+            &|| {
+                crate::solve::material::solve(lib, &look, &hf, &gi[g].spec, Some(g), 0.0, &opt)
+                    .map(first)
+            },
+            &is_m,
+        )?;
+        run(
+            &mut em,
+            &|| exhaustive_material(lib, &look, g, &opt).map(Some),
+            &is_m,
+        )?;
+        run(
+            &mut tgen,
+            &|| crate::solve::general::solve(lib, &look, &opt, &job.general).map(first),
+            &|b| is_g(b) && is_m(b),
+        )?;
         if !job.quiet {
             eprintln!(
                 "validate: case {}/{} done ({:.0} s)",

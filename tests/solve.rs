@@ -76,6 +76,11 @@ fn geometry_solver_is_deterministic_sorted_and_reads_no_material_arrays() {
         !reads.contains("material/"),
         "a material-fixed solve read {reads}"
     );
+    // The search and the re-rank use the stored light lobes; the binned matrix is for building.
+    assert!(
+        reads.contains("geometry/lobes.bsa") && !reads.contains("geometry/gamma.bsa"),
+        "a geometry solve read {reads}"
+    );
 }
 
 #[test]
