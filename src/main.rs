@@ -117,6 +117,9 @@ enum Cmd {
         starts: usize,
         #[arg(long, default_value_t = 4)]
         iterations: usize,
+        /// General solver: geometries of each geometry solve that get a material solve.
+        #[arg(long, default_value_t = 3)]
+        beam: usize,
         /// Weight of the colour term (Eq. 13), 0..1.
         #[arg(long, default_value_t = 0.0)]
         beta: f64,
@@ -164,6 +167,9 @@ enum Cmd {
         k: usize,
         #[arg(long, default_value_t = 3)]
         starts: usize,
+        /// General solver: geometries of each geometry solve that get a material solve.
+        #[arg(long, default_value_t = 3)]
+        beam: usize,
         /// Also sweep the geometry solver's accuracy knobs (error against run time).
         #[arg(long)]
         sweep: bool,
@@ -357,6 +363,7 @@ fn main() -> ExitCode {
             pool,
             starts,
             iterations,
+            beam,
             beta,
             final_eval,
             veds,
@@ -405,6 +412,7 @@ fn main() -> ExitCode {
                         max_iterations: iterations.max(1),
                         seed,
                         start_material: None,
+                        beam: beam.max(1),
                     },
                     veds: veds.map(|n| (n.max(1), bound)),
                     library,
@@ -425,6 +433,7 @@ fn main() -> ExitCode {
             pool,
             k,
             starts,
+            beam,
             sweep,
             plot,
             quiet,
@@ -447,6 +456,7 @@ fn main() -> ExitCode {
                             general: biscale::solve::general::GeneralOptions {
                                 starts: starts.max(1),
                                 seed,
+                                beam: beam.max(1),
                                 ..Default::default()
                             },
                             sweep: sweep || plot.is_some(),

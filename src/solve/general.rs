@@ -23,6 +23,8 @@ pub struct GeneralOptions {
     pub seed: u64,
     /// Start from this library material (index) instead of random ones (first start only).
     pub start_material: Option<usize>,
+    /// Geometries of each geometry solve that get a material solve (the best pair continues).
+    pub beam: usize,
 }
 
 impl Default for GeneralOptions {
@@ -32,6 +34,7 @@ impl Default for GeneralOptions {
             max_iterations: 4,
             seed: 1,
             start_material: None,
+            beam: 3,
         }
     }
 }
@@ -82,25 +85,33 @@ pub fn explore(
             let gr = super::geometry::solve(lib, look, &mat, &mats[m].spec, Some(m), &inner)?;
             accumulate(&mut stats, &gr.stats);
             seen.extend(gr.candidates.iter().cloned());
-            let Some(best_g) = gr.candidates.first().cloned() else {
+            // Beam: the material solve on each of the best `beam` geometries; the best pair
+            // found continues the alternation.
+            let mut best: Option<(Candidate, Candidate)> = None;
+            for cand in gr.candidates.iter().take(g.beam.max(1)) {
+                let j = cand.geometry.unwrap_or(0);
+                let hf = library_heightfield(&cand.geometry_spec)?;
+                let mr = super::material::solve(
+                    lib,
+                    look,
+                    &hf,
+                    &cand.geometry_spec,
+                    Some(j),
+                    cand.psi_deg,
+                    &inner,
+                )?;
+                accumulate(&mut stats, &mr.stats);
+                seen.extend(mr.candidates.iter().cloned());
+                if let Some(bm) = mr.candidates.first() {
+                    if best.as_ref().is_none_or(|b| bm.error < b.1.error) {
+                        best = Some((cand.clone(), bm.clone()));
+                    }
+                }
+            }
+            let Some((best_g, best_m)) = best else {
                 break;
             };
             let j = best_g.geometry.unwrap_or(0);
-            let hf = library_heightfield(&best_g.geometry_spec)?;
-            let mr = super::material::solve(
-                lib,
-                look,
-                &hf,
-                &best_g.geometry_spec,
-                Some(j),
-                best_g.psi_deg,
-                &inner,
-            )?;
-            accumulate(&mut stats, &mr.stats);
-            seen.extend(mr.candidates.iter().cloned());
-            let Some(best_m) = mr.candidates.first() else {
-                break;
-            };
             let key = (
                 j,
                 best_g.psi_deg.round() as i64,
