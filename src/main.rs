@@ -110,7 +110,7 @@ enum Cmd {
         #[arg(long, short = 'k', default_value_t = 5)]
         k: usize,
         /// Items re-ranked with their own library data.
-        #[arg(long, default_value_t = 256)]
+        #[arg(long, default_value_t = 64)]
         pool: usize,
         /// General solver: starts and iterations per start.
         #[arg(long, default_value_t = 5)]
@@ -161,7 +161,7 @@ enum Cmd {
         seed: u64,
         #[arg(long, default_value_t = 1)]
         psi: usize,
-        #[arg(long, default_value_t = 256)]
+        #[arg(long, default_value_t = 64)]
         pool: usize,
         #[arg(long, default_value_t = 3)]
         k: usize,

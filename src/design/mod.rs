@@ -163,7 +163,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
     )?;
     let opt = SolveOptions {
         k: scene.candidates,
-        pool: scene.candidates.max(256),
+        pool: scene.candidates.max(64),
         psi: scene.psi,
         // The fabrication stage evaluates the designed and the made surface of every feasible
         // candidate with the fast evaluator; a third solver stage would repeat that.

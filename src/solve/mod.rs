@@ -70,7 +70,7 @@ impl Default for SolveOptions {
     fn default() -> Self {
         SolveOptions {
             k: 5,
-            pool: 256,
+            pool: 64,
             rerank_fast: true,
             psi: 1,
             beta: 0.0,
