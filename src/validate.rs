@@ -104,7 +104,7 @@ impl Tally {
 }
 
 /// The best geometry by an exhaustive scan of every library geometry's own light lobes (material
-/// fixed, no representatives, no pool). Returns its index and its candidate for verification.
+/// fixed, no representatives, no pool), as a candidate for verification.
 fn exhaustive_geometry(
     lib: &Library,
     look: &Look,
@@ -121,16 +121,13 @@ fn exhaustive_geometry(
         .into_par_iter()
         .map(|j| Ok(s.rel_error(&t, &fast_values(&lobes.get(j)?, &pf, &s))))
         .collect::<Result<_>>()?;
-    let best = crate::solve::smallest(&errs, 1)
-        .first()
-        .copied()
-        .unwrap_or(0);
+    let (best, e) = argmin(&errs);
     Ok(candidate(
         &gi[best].spec,
         Some(best),
         &mi[m].spec,
         Some(m),
-        errs[best],
+        e,
     ))
 }
 
@@ -145,26 +142,33 @@ fn exhaustive_material(
     let gi = lib.geometry_items()?;
     let mi = lib.material_items()?;
     let lobes = lib.geometry_lobes()?;
-    let geo = lobes.get(g)?;
     let (s, t) = rotated_samples(look, &lib.gamma_layout().lights, 0.0, &opt.sampling);
+    // The geometry is fixed: its lobes at the samples are assembled once for every material.
+    let geo = crate::fast::FixedLobes::new(&lobes.get(g)?, &crate::solve::dir_pairs(&s));
     let errs: Vec<f64> = (0..mi.len())
         .into_par_iter()
         .map(|m| {
             let pf = material_prefiltered(lib, &parse_material(&mi[m].spec)?, Some(m))?;
-            Ok(s.rel_error(&t, &fast_values(&geo, &pf, &s)))
+            Ok(s.rel_error(&t, &geo.fbar(&pf)))
         })
         .collect::<Result<_>>()?;
-    let best = crate::solve::smallest(&errs, 1)
-        .first()
-        .copied()
-        .unwrap_or(0);
+    let (best, e) = argmin(&errs);
     Ok(candidate(
         &gi[g].spec,
         Some(g),
         &mi[best].spec,
         Some(best),
-        errs[best],
+        e,
     ))
+}
+
+/// The index and value of the smallest finite error (ties by index; index 0 if none is finite).
+fn argmin(errs: &[f64]) -> (usize, f64) {
+    let best = crate::solve::smallest(errs, 1)
+        .first()
+        .copied()
+        .unwrap_or(0);
+    (best, errs.get(best).copied().unwrap_or(f64::INFINITY))
 }
 
 /// A (geometry, material) answer at rotation 0.
