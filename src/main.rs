@@ -120,6 +120,11 @@ enum Cmd {
         /// General solver: geometries of each geometry solve that get a material solve.
         #[arg(long, default_value_t = 3)]
         beam: usize,
+        /// General solver: pairs of the joint search (both libraries through their
+        /// representatives) re-ranked with their own data; the best pairs' materials are the
+        /// starts. 0: flat-patch and random starts only.
+        #[arg(long, default_value_t = 512)]
+        joint_pool: usize,
         /// Weight of the colour term (Eq. 13), 0..1.
         #[arg(long, default_value_t = 0.0)]
         beta: f64,
@@ -170,6 +175,11 @@ enum Cmd {
         /// General solver: geometries of each geometry solve that get a material solve.
         #[arg(long, default_value_t = 3)]
         beam: usize,
+        /// General solver: pairs of the joint search (both libraries through their
+        /// representatives) re-ranked with their own data; the best pairs' materials are the
+        /// starts. 0: flat-patch and random starts only.
+        #[arg(long, default_value_t = 512)]
+        joint_pool: usize,
         /// Also sweep the geometry solver's accuracy knobs (error against run time).
         #[arg(long)]
         sweep: bool,
@@ -364,6 +374,7 @@ fn main() -> ExitCode {
             starts,
             iterations,
             beam,
+            joint_pool,
             beta,
             final_eval,
             veds,
@@ -413,6 +424,7 @@ fn main() -> ExitCode {
                         seed,
                         start_material: None,
                         beam: beam.max(1),
+                        joint_pool,
                     },
                     veds: veds.map(|n| (n.max(1), bound)),
                     library,
@@ -434,6 +446,7 @@ fn main() -> ExitCode {
             k,
             starts,
             beam,
+            joint_pool,
             sweep,
             plot,
             quiet,
@@ -457,6 +470,7 @@ fn main() -> ExitCode {
                                 starts: starts.max(1),
                                 seed,
                                 beam: beam.max(1),
+                                joint_pool,
                                 ..Default::default()
                             },
                             sweep: sweep || plot.is_some(),

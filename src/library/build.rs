@@ -359,6 +359,8 @@ pub struct ItemMatrix<'a> {
     file: &'a ArrayFile,
     items: usize,
     len: usize,
+    /// Per-item factors applied to the columns as they are read (none: the stored values).
+    scale: Option<Vec<f64>>,
 }
 
 impl<'a> ItemMatrix<'a> {
@@ -368,7 +370,27 @@ impl<'a> ItemMatrix<'a> {
             file,
             items: s[0],
             len: s.get(1).copied().unwrap_or(1),
+            scale: None,
         }
+    }
+
+    /// Each item's column norm (one parallel pass over the file).
+    pub fn column_norms(&self) -> Result<Vec<f64>> {
+        let rows = self.len;
+        (0..self.items)
+            .into_par_iter()
+            .map(|j| {
+                let mut col = Mat::<f64>::zeros(rows, 1);
+                self.read_block(0..rows, j..j + 1, col.as_mut())?;
+                Ok((0..rows).map(|i| col[(i, 0)].powi(2)).sum::<f64>().sqrt())
+            })
+            .collect()
+    }
+
+    /// The same matrix with column `j` multiplied by `scale[j]`.
+    pub fn scaled(mut self, scale: Vec<f64>) -> Self {
+        self.scale = Some(scale);
+        self
     }
 }
 
@@ -385,6 +407,7 @@ impl BlockSource for ItemMatrix<'_> {
         cols: Range<usize>,
         mut out: MatMut<'_, f64>,
     ) -> Result<()> {
+        let cols_again = cols.clone();
         match self.file.header.dtype {
             Dtype::F16 => {
                 let d = self.file.f16s()?;
@@ -409,6 +432,13 @@ impl BlockSource for ItemMatrix<'_> {
                     self.file.path.display().to_string(),
                     format!("{d:?} is not a matrix type"),
                 ))
+            }
+        }
+        if let Some(sc) = &self.scale {
+            for (jj, j) in cols_again.enumerate() {
+                for ii in 0..rows.len() {
+                    out[(ii, jj)] *= sc[j];
+                }
             }
         }
         Ok(())
@@ -520,17 +550,41 @@ fn save_u32(
 
 /// Compress one item matrix and pick its representatives; writes `<kind>/coords.bsa`,
 /// `<kind>/singular.bsa`, `<kind>/representatives.bsa` and `<kind>/x.bsa`.
+///
+/// With `normalise`, the SVD and the CX selection see every item's column scaled to unit norm,
+/// so the energy and CX thresholds bound each item's *relative* error rather than the error of
+/// the whole matrix, which the items with the largest values own. (Prefiltered tables span
+/// orders of magnitude: a mirror-like material's peaks are 10⁴ times a rough one's, and without
+/// this the rough materials' CX weights reconstruct almost nothing of them.) The stored
+/// coordinates and CX weights are then scaled back, so they reconstruct the stored columns:
+/// `b_j = Σ_k b_c(k) x̂_kj |b_j| / |b_c(k)|`.
+#[allow(clippy::too_many_arguments)]
 fn compress(
     dir: &Path,
     kind: &str,
     file: &ArrayFile,
     prof: &LibraryProfile,
     gram: bool,
+    normalise: bool,
     files: &mut Vec<ArrayEntry>,
     stages: &Stages,
 ) -> Result<CompressionReport> {
     let c = &prof.compression;
-    let b = ItemMatrix::new(file);
+    let raw = ItemMatrix::new(file);
+    let norms = if normalise {
+        stages.stage(&format!("{kind} column norms"));
+        Some(raw.column_norms()?)
+    } else {
+        None
+    };
+    let b = match &norms {
+        Some(n) => raw.scaled(
+            n.iter()
+                .map(|&v| if v > 0.0 { 1.0 / v } else { 0.0 })
+                .collect(),
+        ),
+        None => raw,
+    };
     stages.stage(&format!(
         "{kind} {} ({} × {})",
         if gram { "SVD" } else { "randomized SVD" },
@@ -571,12 +625,23 @@ fn compress(
     )?;
     let cx_seconds = t.elapsed().as_secs_f64();
     let n = comp.coords.ncols();
+    let (mut coords, mut xw) = (comp.coords.clone(), sel.x.clone());
+    if let Some(nrm) = &norms {
+        for j in 0..n {
+            for r in 0..coords.nrows() {
+                coords[(r, j)] *= nrm[j];
+            }
+            for (k, &ck) in sel.columns.iter().enumerate() {
+                xw[(k, j)] *= if nrm[ck] > 0.0 { nrm[j] / nrm[ck] } else { 0.0 };
+            }
+        }
+    }
     save_f32(
         dir,
         &format!("{kind}/coords.bsa"),
         &format!("{kind}-coords"),
         &[n, comp.rank],
-        &mat_f32_rows(&comp.coords),
+        &mat_f32_rows(&coords),
         files,
     )?;
     let sv: Vec<f32> = comp.singular.iter().map(|&s| s as f32).collect();
@@ -601,7 +666,7 @@ fn compress(
         &format!("{kind}/x.bsa"),
         &format!("{kind}-x"),
         &[n, cols.len()],
-        &mat_f32_rows(&sel.x),
+        &mat_f32_rows(&xw),
         files,
     )?;
     // Error of the whole chain against B: the SVD's lost energy plus CX's error on the kept part.
@@ -739,9 +804,13 @@ pub fn merge(
     times.colours = t.elapsed().as_secs_f64();
 
     let mfile = ArrayFile::open(&mpath, &Expect::default())?;
-    let material = compress(dir, "material", &mfile, &prof, true, &mut files, &stages)?;
+    let material = compress(
+        dir, "material", &mfile, &prof, true, true, &mut files, &stages,
+    )?;
     let gfile = ArrayFile::open(&gpath, &Expect::default())?;
-    let geometry = compress(dir, "geometry", &gfile, &prof, false, &mut files, &stages)?;
+    let geometry = compress(
+        dir, "geometry", &gfile, &prof, false, false, &mut files, &stages,
+    )?;
     stages.finish();
     times.compress =
         material.svd_seconds + material.cx_seconds + geometry.svd_seconds + geometry.cx_seconds;

@@ -25,6 +25,10 @@ pub struct GeneralOptions {
     pub start_material: Option<usize>,
     /// Geometries of each geometry solve that get a material solve (the best pair continues).
     pub beam: usize,
+    /// Pairs of the joint search ([`super::joint`]) re-ranked with their own data; the best
+    /// pairs are candidates and their distinct materials the starts. 0 = no joint search
+    /// (flat-patch and random starts).
+    pub joint_pool: usize,
 }
 
 impl Default for GeneralOptions {
@@ -35,6 +39,7 @@ impl Default for GeneralOptions {
             seed: 1,
             start_material: None,
             beam: 3,
+            joint_pool: 512,
         }
     }
 }
@@ -62,23 +67,44 @@ pub fn explore(
     let mut rng = Rng::new(g.seed);
     let mut seen: Vec<Candidate> = Vec::new();
     let mut stats = SolveStats::default();
-    // Starts: the given material, else the material that best reproduces the look on a flat
-    // patch (the material solver on a flat heightfield: the look as a plain BRDF); then seeded
-    // random materials.
-    let first = match g.start_material {
-        Some(m) => Some(m.min(mats.len() - 1)),
-        None => {
-            let flat = crate::heightfield::Heightfield::flat(16, 16);
-            let r = super::material::solve(lib, look, &flat, "flat", None, 0.0, &inner)?;
-            accumulate(&mut stats, &r.stats);
-            r.candidates.first().and_then(|c| c.material)
+    // Starts: the given material; then the materials of the best pairs of the joint search;
+    // then the material that best reproduces the look on a flat patch (the material solver on
+    // a flat heightfield: the look as a plain BRDF); then seeded random materials.
+    let starts = g.starts.max(1);
+    let mut start_mats: Vec<usize> = g
+        .start_material
+        .map(|m| m.min(mats.len() - 1))
+        .into_iter()
+        .collect();
+    if g.joint_pool > 0 {
+        let t = Instant::now();
+        let (scanned, pairs) = super::joint::search(lib, look, &inner, g.joint_pool)?;
+        stats.search_seconds += t.elapsed().as_secs_f64();
+        stats.items_searched += scanned;
+        for p in &pairs {
+            if start_mats.len() < starts && !start_mats.contains(&p.material) {
+                start_mats.push(p.material);
+            }
         }
-    };
-    for s in 0..g.starts.max(1) {
-        let mut m = match (s, first) {
-            (0, Some(m)) => m,
-            _ => rng.below(mats.len() as u64) as usize,
-        };
+        for p in pairs.iter().take(inner.k) {
+            seen.push(super::joint::candidate(lib, look, p, &inner)?);
+        }
+    }
+    if start_mats.len() < starts {
+        let flat = crate::heightfield::Heightfield::flat(16, 16);
+        let r = super::material::solve(lib, look, &flat, "flat", None, 0.0, &inner)?;
+        accumulate(&mut stats, &r.stats);
+        if let Some(m) = r.candidates.first().and_then(|c| c.material) {
+            if !start_mats.contains(&m) {
+                start_mats.push(m);
+            }
+        }
+    }
+    while start_mats.len() < starts {
+        start_mats.push(rng.below(mats.len() as u64) as usize);
+    }
+    for (s, &m0) in start_mats.iter().enumerate() {
+        let mut m = m0;
         let mut last: Option<(usize, i64, usize)> = None;
         for _ in 0..g.max_iterations.max(1) {
             let mat: Material = parse_material(&mats[m].spec)?;

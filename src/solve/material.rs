@@ -24,7 +24,11 @@ use std::time::Instant;
 
 /// The best colour shift of material `m` for a target colour: `(shift index, colour, distance²
 /// relative to |λ̂|²)`.
-fn best_colour(base: [f32; 3], shifts: &[f32], target: Option<[f64; 3]>) -> (usize, [f64; 3], f64) {
+pub(super) fn best_colour(
+    base: [f32; 3],
+    shifts: &[f32],
+    target: Option<[f64; 3]>,
+) -> (usize, [f64; 3], f64) {
     let own = [base[0] as f64, base[1] as f64, base[2] as f64];
     let Some(t) = target else {
         return (0, own, 0.0);

@@ -17,6 +17,7 @@
 pub mod general;
 pub mod geometry;
 pub mod job;
+pub mod joint;
 pub mod look;
 pub mod material;
 pub mod veds;
