@@ -86,9 +86,9 @@ pub fn explore(
                 start_mats.push(p.material);
             }
         }
-        for p in pairs.iter().take(inner.k) {
-            seen.push(super::joint::candidate(lib, look, p, &inner)?);
-        }
+        // Every re-ranked pair is a visited combination (the visually equivalent details walk
+        // them all).
+        seen.extend(super::joint::candidates(lib, look, &pairs, &inner)?);
     }
     if start_mats.len() < starts {
         let flat = crate::heightfield::Heightfield::flat(16, 16);

@@ -170,6 +170,15 @@ pub fn search(
         kept.extend(best.into_iter().flatten());
     }
     let scanned = gitems * mitems.len() * rots.len();
+    // One rotation per (geometry, material): its best. (Rotations of a nearly isotropic geometry
+    // score alike and would fill the pool with copies of one pair.)
+    kept.sort_by(|a, b| {
+        (a.geometry, a.material)
+            .cmp(&(b.geometry, b.material))
+            .then(a.error.total_cmp(&b.error))
+            .then(a.rotation.cmp(&b.rotation))
+    });
+    kept.dedup_by_key(|p| (p.geometry, p.material));
     let errs: Vec<f64> = kept.iter().map(|p| p.error).collect();
     let chosen: Vec<Pair> = smallest(&errs, pool.max(1))
         .into_iter()
@@ -221,31 +230,41 @@ pub fn search(
     Ok((scanned, reranked))
 }
 
-/// A scored pair as a solver candidate (colour: the material's best colour shift for the look).
-pub fn candidate(lib: &Library, look: &Look, p: &Pair, opt: &SolveOptions) -> Result<Candidate> {
+/// Scored pairs as solver candidates (colour: each material's best colour shift for the look).
+pub fn candidates(
+    lib: &Library,
+    look: &Look,
+    pairs: &[Pair],
+    opt: &SolveOptions,
+) -> Result<Vec<Candidate>> {
     let gi = lib.geometry_items()?;
     let mi = lib.material_items()?;
     let colours = lib.array("material/colour.bsa")?;
     let shifts = lib.array("material/colour-shifts.bsa")?;
     let (colours, shifts) = (colours.f32s()?, shifts.f32s()?);
     let ns = lib.manifest.colours_per_material * 3;
-    let m = p.material;
-    let (shift, colour, _) = super::material::best_colour(
-        [colours[3 * m], colours[3 * m + 1], colours[3 * m + 2]],
-        &shifts[m * ns..(m + 1) * ns],
-        look.colour,
-    );
-    Ok(Candidate {
-        geometry: Some(p.geometry),
-        geometry_spec: gi[p.geometry].spec.clone(),
-        material: Some(m),
-        material_spec: mi[m].spec.clone(),
-        psi_deg: super::psi_angle(p.rotation, opt.psi).to_degrees(),
-        colour_shift: Some(shift),
-        colour,
-        search_error: p.search_error,
-        rerank_error: p.error,
-        error: p.error,
-        evaluated_by: Final::Library,
-    })
+    Ok(pairs
+        .iter()
+        .map(|p| {
+            let m = p.material;
+            let (shift, colour, _) = super::material::best_colour(
+                [colours[3 * m], colours[3 * m + 1], colours[3 * m + 2]],
+                &shifts[m * ns..(m + 1) * ns],
+                look.colour,
+            );
+            Candidate {
+                geometry: Some(p.geometry),
+                geometry_spec: gi[p.geometry].spec.clone(),
+                material: Some(m),
+                material_spec: mi[m].spec.clone(),
+                psi_deg: super::psi_angle(p.rotation, opt.psi).to_degrees(),
+                colour_shift: Some(shift),
+                colour,
+                search_error: p.search_error,
+                rerank_error: p.error,
+                error: p.error,
+                evaluated_by: Final::Library,
+            }
+        })
+        .collect())
 }
