@@ -122,9 +122,10 @@ pub fn solve(
     stats.search_seconds = t0.elapsed().as_secs_f64();
     // Stage 2: each pooled material's own table.
     let t1 = Instant::now();
-    // Re-ranking a material costs milliseconds (its own table, the geometry's lobes), so the
-    // material solver re-ranks four times the pool.
-    let pool = smallest(&scores, (4 * opt.pool).max(opt.k));
+    // Since the material CX weights are fitted per material (tables scaled to unit norm), the
+    // search ranks well enough that re-ranking `pool` materials finds what re-ranking four
+    // times as many did (`biscale validate`, material rows: the same 90 % in 0.042 s, not 0.090 s).
+    let pool = smallest(&scores, opt.pool.max(opt.k));
     let mut reranked: Vec<(f64, f64, usize)> = pool
         .par_iter()
         .map(|&m| {
