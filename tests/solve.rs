@@ -240,7 +240,14 @@ fn joint_search_finds_the_pair_of_a_library_combination() {
     let mut first = 0;
     for (g, m) in [(2, 1), (ng / 2, nm / 2), (ng - 3, nm - 1)] {
         let look = combo(&lib, g, m);
-        let (scanned, pairs) = biscale::solve::joint::search(&lib, &look, &opt, 32).unwrap();
+        let (scanned, pairs) = biscale::solve::joint::search(
+            &lib,
+            &look,
+            &opt,
+            32,
+            biscale::solve::joint::MAX_OPERATIONS,
+        )
+        .unwrap();
         assert_eq!(scanned, ng * nm);
         assert!(pairs.windows(2).all(|w| w[0].error <= w[1].error));
         let pos = pairs
@@ -254,4 +261,21 @@ fn joint_search_finds_the_pair_of_a_library_combination() {
         first >= 2,
         "the true pair ranked first in {first} of 3 cases"
     );
+}
+
+/// Over its operation budget the joint search pairs every geometry with only the materials
+/// closest to the look on a flat patch (at least 16, or all when fewer), and still returns a
+/// sorted pool.
+#[test]
+fn joint_search_keeps_to_its_budget() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let (ng, nm) = (lib.manifest.geometries, lib.manifest.materials);
+    let look = combo(&lib, 2, 1);
+    let opt = SolveOptions {
+        final_eval: Final::Library,
+        ..Default::default()
+    };
+    let (scanned, pairs) = biscale::solve::joint::search(&lib, &look, &opt, 16, 1.0).unwrap();
+    assert_eq!(scanned, ng * nm.min(16));
+    assert!(!pairs.is_empty() && pairs.windows(2).all(|w| w[0].error <= w[1].error));
 }

@@ -78,9 +78,22 @@ pub fn explore(
         .collect();
     if g.joint_pool > 0 {
         let t = Instant::now();
-        let (scanned, pairs) = super::joint::search(lib, look, &inner, g.joint_pool)?;
+        let (scanned, pairs) = super::joint::search(
+            lib,
+            look,
+            &inner,
+            g.joint_pool,
+            super::joint::MAX_OPERATIONS,
+        )?;
         stats.search_seconds += t.elapsed().as_secs_f64();
         stats.items_searched += scanned;
+        let all = lib.manifest.geometries * mats.len() * inner.psi.max(1);
+        if scanned < all {
+            stats.notes.push(format!(
+                "joint search: {scanned} of {all} (geometry, material, rotation) pairs, the \
+                 materials closest to the look on a flat patch"
+            ));
+        }
         for p in &pairs {
             if start_mats.len() < starts && !start_mats.contains(&p.material) {
                 start_mats.push(p.material);
@@ -91,10 +104,9 @@ pub fn explore(
         seen.extend(super::joint::candidates(lib, look, &pairs, &inner)?);
     }
     if start_mats.len() < starts {
-        let flat = crate::heightfield::Heightfield::flat(16, 16);
-        let r = super::material::solve(lib, look, &flat, "flat", None, 0.0, &inner)?;
-        accumulate(&mut stats, &r.stats);
-        if let Some(m) = r.candidates.first().and_then(|c| c.material) {
+        let (best, st) = super::material::closest_on_flat_patch(lib, look, 1, &inner)?;
+        accumulate(&mut stats, &st);
+        if let Some(&m) = best.first() {
             if !start_mats.contains(&m) {
                 start_mats.push(m);
             }

@@ -38,14 +38,23 @@ pub struct Pair {
 /// at `geometries × KEEP_PER_GEOMETRY` whatever the material library's size).
 const KEEP_PER_GEOMETRY: usize = 8;
 
+/// Multiply-adds the pair scan may spend (about 2–4 s on 2 cores). The default library's scan
+/// (730 geometries × 160 materials × `13² + 13`) is 2 × 10⁷; a paper-sized one (164,431 ×
+/// 4,101 distinct BRDFs) would be 10³ times that, so there only the materials closest to the
+/// look on a flat patch are paired with every geometry.
+pub const MAX_OPERATIONS: f64 = 1e10;
+
 /// Score every pair through the representatives (stage 1), re-rank the best `pool` pairs with
 /// their own light lobes and prefiltered tables (stage 2). Returns the number of pairs scanned
-/// and the re-ranked pool, best first.
+/// and the re-ranked pool, best first. When scoring every pair would cost more than
+/// `max_operations` multiply-adds, only the materials that best reproduce the look on a flat
+/// patch (the material solver's ranking) are paired, as many as the budget allows (at least 16).
 pub fn search(
     lib: &Library,
     look: &Look,
     opt: &SolveOptions,
     pool: usize,
+    max_operations: f64,
 ) -> Result<(usize, Vec<Pair>)> {
     let gitems = lib.geometry_items()?.len();
     let mitems = lib.material_items()?;
@@ -69,6 +78,15 @@ pub fn search(
             "representatives and CX weights do not match the item counts",
         ));
     }
+    let per_pair = (ks * ks + ks) as f64;
+    let rotations = opt.psi.max(1) as f64;
+    let affordable = (max_operations / (gitems as f64 * rotations * per_pair)).floor() as usize;
+    let materials: Vec<usize> = if affordable >= mitems.len() {
+        (0..mitems.len()).collect()
+    } else {
+        let n = affordable.max(16).min(mitems.len());
+        super::material::closest_on_flat_patch(lib, look, n, opt)?.0
+    };
     let rep_tables: Vec<_> = mreps
         .iter()
         .map(|&s| {
@@ -141,8 +159,9 @@ pub fn search(
                         q[j * ks + i] = v;
                     }
                 }
-                let errs: Vec<f64> = (0..mitems.len())
-                    .map(|m| {
+                let errs: Vec<f64> = materials
+                    .iter()
+                    .map(|&m| {
                         let y = &mx[m * ks..(m + 1) * ks];
                         let mut d = n2;
                         for i in 0..ks {
@@ -157,11 +176,11 @@ pub fn search(
                     .collect();
                 smallest(&errs, KEEP_PER_GEOMETRY)
                     .into_iter()
-                    .map(|m| Pair {
-                        error: errs[m],
-                        search_error: errs[m],
+                    .map(|i| Pair {
+                        error: errs[i],
+                        search_error: errs[i],
                         geometry: g,
-                        material: m,
+                        material: materials[i],
                         rotation: ri,
                     })
                     .collect()
@@ -169,7 +188,7 @@ pub fn search(
             .collect();
         kept.extend(best.into_iter().flatten());
     }
-    let scanned = gitems * mitems.len() * rots.len();
+    let scanned = gitems * materials.len() * rots.len();
     // One rotation per (geometry, material): its best. (Rotations of a nearly isotropic geometry
     // score alike and would fill the pool with copies of one pair.)
     kept.sort_by(|a, b| {

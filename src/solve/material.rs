@@ -194,3 +194,26 @@ pub fn solve(
         stats,
     })
 }
+
+/// The `n` library materials that best reproduce the look on a flat patch (the look taken as a
+/// plain BRDF), best first, with the solve's statistics: the general solver's first start, and
+/// the joint search's material subset when a library is too large to pair every material.
+pub fn closest_on_flat_patch(
+    lib: &Library,
+    look: &Look,
+    n: usize,
+    opt: &SolveOptions,
+) -> Result<(Vec<usize>, SolveStats)> {
+    let flat = Heightfield::flat(16, 16);
+    let o = SolveOptions {
+        k: n.max(1),
+        pool: opt.pool.max(n),
+        final_eval: Final::Library,
+        ..opt.clone()
+    };
+    let r = solve(lib, look, &flat, "flat", None, 0.0, &o)?;
+    Ok((
+        r.candidates.iter().filter_map(|c| c.material).collect(),
+        r.stats,
+    ))
+}
