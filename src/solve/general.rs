@@ -13,6 +13,7 @@ use crate::error::{Error, Result};
 use crate::library::Library;
 use crate::material::{parse_material, Material};
 use crate::rng::Rng;
+use std::collections::HashMap;
 use std::time::Instant;
 
 /// Settings of the alternation.
@@ -115,32 +116,44 @@ pub fn explore(
     while start_mats.len() < starts {
         start_mats.push(rng.below(mats.len() as u64) as usize);
     }
+    // Solves are deterministic, so one already run (another start reaching the same material,
+    // or the same geometry and rotation) is read back instead of repeated.
+    let mut geometry_solves: HashMap<usize, Vec<Candidate>> = HashMap::new();
+    let mut material_solves: HashMap<(usize, u64), Vec<Candidate>> = HashMap::new();
     for (s, &m0) in start_mats.iter().enumerate() {
         let mut m = m0;
         let mut last: Option<(usize, i64, usize)> = None;
         for _ in 0..g.max_iterations.max(1) {
-            let mat: Material = parse_material(&mats[m].spec)?;
-            let gr = super::geometry::solve(lib, look, &mat, &mats[m].spec, Some(m), &inner)?;
-            accumulate(&mut stats, &gr.stats);
-            seen.extend(gr.candidates.iter().cloned());
+            if !geometry_solves.contains_key(&m) {
+                let mat: Material = parse_material(&mats[m].spec)?;
+                let gr = super::geometry::solve(lib, look, &mat, &mats[m].spec, Some(m), &inner)?;
+                accumulate(&mut stats, &gr.stats);
+                seen.extend(gr.candidates.iter().cloned());
+                geometry_solves.insert(m, gr.candidates);
+            }
+            let geometries = geometry_solves[&m].clone();
             // Beam: the material solve on each of the best `beam` geometries; the best pair
             // found continues the alternation.
             let mut best: Option<(Candidate, Candidate)> = None;
-            for cand in gr.candidates.iter().take(g.beam.max(1)) {
+            for cand in geometries.iter().take(g.beam.max(1)) {
                 let j = cand.geometry.unwrap_or(0);
-                let hf = library_heightfield(&cand.geometry_spec)?;
-                let mr = super::material::solve(
-                    lib,
-                    look,
-                    &hf,
-                    &cand.geometry_spec,
-                    Some(j),
-                    cand.psi_deg,
-                    &inner,
-                )?;
-                accumulate(&mut stats, &mr.stats);
-                seen.extend(mr.candidates.iter().cloned());
-                if let Some(bm) = mr.candidates.first() {
+                let key = (j, cand.psi_deg.to_bits());
+                if !material_solves.contains_key(&key) {
+                    let hf = library_heightfield(&cand.geometry_spec)?;
+                    let mr = super::material::solve(
+                        lib,
+                        look,
+                        &hf,
+                        &cand.geometry_spec,
+                        Some(j),
+                        cand.psi_deg,
+                        &inner,
+                    )?;
+                    accumulate(&mut stats, &mr.stats);
+                    seen.extend(mr.candidates.iter().cloned());
+                    material_solves.insert(key, mr.candidates);
+                }
+                if let Some(bm) = material_solves[&key].first() {
                     if best.as_ref().is_none_or(|b| bm.error < b.1.error) {
                         best = Some((cand.clone(), bm.clone()));
                     }
