@@ -38,10 +38,10 @@ pub struct Pair {
 /// at `geometries × KEEP_PER_GEOMETRY` whatever the material library's size).
 const KEEP_PER_GEOMETRY: usize = 8;
 
-/// Multiply-adds the pair scan may spend (about 2–4 s on 2 cores). The default library's scan
-/// (730 geometries × 160 materials × `13² + 13`) is 2 × 10⁷; a paper-sized one (164,431 ×
-/// 4,101 distinct BRDFs) would be 10³ times that, so there only the materials closest to the
-/// look on a flat patch are paired with every geometry.
+/// Multiply-adds the pair scan may spend: 500 times the default library's scan (730 geometries
+/// × 160 materials × `13² + 13` = 2 × 10⁷). A paper-sized library (164,431 geometries × 4,101
+/// distinct BRDFs) would need thousands of times the default's, so there only the materials
+/// closest to the look on a flat patch are paired with every geometry.
 pub const MAX_OPERATIONS: f64 = 1e10;
 
 /// Score every pair through the representatives (stage 1), re-rank the best `pool` pairs with
