@@ -264,18 +264,26 @@ fn joint_search_finds_the_pair_of_a_library_combination() {
 }
 
 /// Over its operation budget the joint search pairs every geometry with only the materials
-/// closest to the look on a flat patch (at least 16, or all when fewer), and still returns a
-/// sorted pool.
+/// closest to the look on a flat patch (at least `MIN_MATERIALS`), and still returns a sorted
+/// pool of pairs made of those materials.
 #[test]
 fn joint_search_keeps_to_its_budget() {
     let lib = Library::open(&tiny_library()).unwrap();
     let (ng, nm) = (lib.manifest.geometries, lib.manifest.materials);
+    let few = biscale::solve::joint::MIN_MATERIALS;
+    assert!(
+        nm > few,
+        "the tiny library needs more than {few} materials for this test"
+    );
     let look = combo(&lib, 2, 1);
     let opt = SolveOptions {
         final_eval: Final::Library,
         ..Default::default()
     };
     let (scanned, pairs) = biscale::solve::joint::search(&lib, &look, &opt, 16, 1.0).unwrap();
-    assert_eq!(scanned, ng * nm.min(16));
+    assert_eq!(scanned, ng * few);
     assert!(!pairs.is_empty() && pairs.windows(2).all(|w| w[0].error <= w[1].error));
+    let (closest, _) =
+        biscale::solve::material::closest_on_flat_patch(&lib, &look, few, &opt).unwrap();
+    assert!(pairs.iter().all(|p| closest.contains(&p.material)));
 }

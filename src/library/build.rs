@@ -407,11 +407,10 @@ impl BlockSource for ItemMatrix<'_> {
         cols: Range<usize>,
         mut out: MatMut<'_, f64>,
     ) -> Result<()> {
-        let cols_again = cols.clone();
         match self.file.header.dtype {
             Dtype::F16 => {
                 let d = self.file.f16s()?;
-                for (jj, j) in cols.enumerate() {
+                for (jj, j) in cols.clone().enumerate() {
                     let src = &d[j * self.len + rows.start..j * self.len + rows.end];
                     for (ii, v) in src.iter().enumerate() {
                         out[(ii, jj)] = v.to_f64();
@@ -420,7 +419,7 @@ impl BlockSource for ItemMatrix<'_> {
             }
             Dtype::F32 => {
                 let d = self.file.f32s()?;
-                for (jj, j) in cols.enumerate() {
+                for (jj, j) in cols.clone().enumerate() {
                     let src = &d[j * self.len + rows.start..j * self.len + rows.end];
                     for (ii, v) in src.iter().enumerate() {
                         out[(ii, jj)] = *v as f64;
@@ -435,7 +434,7 @@ impl BlockSource for ItemMatrix<'_> {
             }
         }
         if let Some(sc) = &self.scale {
-            for (jj, j) in cols_again.enumerate() {
+            for (jj, j) in cols.enumerate() {
                 for ii in 0..rows.len() {
                     out[(ii, jj)] *= sc[j];
                 }

@@ -44,11 +44,15 @@ const KEEP_PER_GEOMETRY: usize = 8;
 /// closest to the look on a flat patch are paired with every geometry.
 pub const MAX_OPERATIONS: f64 = 1e10;
 
+/// Fewest materials the pair scan pairs with every geometry, whatever the budget.
+pub const MIN_MATERIALS: usize = 4;
+
 /// Score every pair through the representatives (stage 1), re-rank the best `pool` pairs with
 /// their own light lobes and prefiltered tables (stage 2). Returns the number of pairs scanned
 /// and the re-ranked pool, best first. When scoring every pair would cost more than
 /// `max_operations` multiply-adds, only the materials that best reproduce the look on a flat
-/// patch (the material solver's ranking) are paired, as many as the budget allows (at least 16).
+/// patch (the material solver's ranking) are paired, as many as the budget allows (at least
+/// [`MIN_MATERIALS`]).
 pub fn search(
     lib: &Library,
     look: &Look,
@@ -84,7 +88,7 @@ pub fn search(
     let materials: Vec<usize> = if affordable >= mitems.len() {
         (0..mitems.len()).collect()
     } else {
-        let n = affordable.max(16).min(mitems.len());
+        let n = affordable.max(MIN_MATERIALS).min(mitems.len());
         super::material::closest_on_flat_patch(lib, look, n, opt)?.0
     };
     let rep_tables: Vec<_> = mreps
