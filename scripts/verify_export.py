@@ -1,13 +1,14 @@
 #!/usr/bin/env python3
 """Independent checks of the STL tiles that `biscale design` exports into OUTDIR.
 
-Per exported detail: mesh checks with trimesh (and ADMesh when installed), then a drop-cutter
-simulation of the profile's ball-nose tool on the central period of the tile (OpenCAMLib, or an
-exact numpy drop-cutter when OpenCAMLib is missing or --numpy is given). The max and RMS of
-(made - design) are compared with summary.json: pass if |ours - theirs| <= 0.01 mm + 5 % of theirs.
+Per exported detail: mesh checks with trimesh (and, when installed, ADMesh, PrusaSlicer --info and
+a headless PrusaSlicer slice to G-code), then a drop-cutter simulation of the profile's ball-nose
+tool on the central period of the tile (OpenCAMLib, or an exact numpy drop-cutter when OpenCAMLib
+is missing or --numpy is given). The max and RMS of (made - design) are compared with summary.json:
+pass if |ours - theirs| <= 0.01 mm + 5 % of theirs.
 Usage: verify_export.py OUTDIR [--numpy] [--spacing-frac F]   (grid spacing <= F * tool radius)
 """
-import json, math, re, shutil, subprocess, sys, tomllib
+import json, math, re, shutil, subprocess, sys, tempfile, time, tomllib
 from pathlib import Path
 import numpy as np
 import trimesh
@@ -72,7 +73,35 @@ def mesh_checks(path, meta, tris, normals):
                     ", ".join(f"{k.split()[0].lower()} {v}" for k, v in vals.items())))
     else:
         out.append(("admesh", True, "not installed, skipped"))
-    return out
+    return out + prusa_checks(path, m.volume)
+
+
+def prusa_checks(path, volume):
+    """PrusaSlicer --info (manifold, facets, volume vs trimesh to 0.5 %) and a headless slice to G-code."""
+    exe = shutil.which("prusa-slicer")
+    if not exe:
+        return [("prusa-slicer", True, "not installed, skipped")]
+    txt = subprocess.run([exe, "--info", str(path)], capture_output=True, text=True).stdout
+    info = dict(re.findall(r"^(\w+)\s*=\s*(.*?)\s*$", txt, re.M))
+    pv = float(info.get("volume", "nan"))
+    out = [("prusa-slicer --info manifold", info.get("manifold") == "yes",
+            f"manifold = {info.get('manifold', '?')}, {info.get('number_of_facets', '?')} facets"
+            + (f", {info['open_edges']} open edges" if "open_edges" in info else "")),
+           ("prusa volume = trimesh (0.5 %)", abs(pv - volume) <= 0.005 * abs(volume), f"{pv:.3f} vs {volume:.3f} mm3")]
+    with tempfile.TemporaryDirectory() as tmp:
+        gcode = Path(tmp) / f"{path.stem}.gcode"
+        t0 = time.monotonic()
+        r = subprocess.run([exe, "--loglevel", "1", "--export-gcode", "--output", str(gcode), str(path)],
+                           capture_output=True, text=True)
+        dt = time.monotonic() - t0
+        ok = r.returncode == 0 and gcode.is_file() and gcode.stat().st_size > 0
+        if ok:
+            g = gcode.read_text()
+            est = re.search(r"estimated printing time \(normal mode\) = (.*)", g)
+            info = f"{g.count(';LAYER_CHANGE')} layers, est. print {est.group(1) if est else '?'}, sliced in {dt:.1f} s"
+        else:
+            info = f"exit {r.returncode}: {(r.stderr.strip() or r.stdout.strip() or 'no output').splitlines()[-1]}"
+    return out + [("prusa-slicer --export-gcode", ok, info)]
 
 
 def drop_numpy(tris, cx, cy, r):
