@@ -369,6 +369,12 @@ struct CellWalk {
 
 impl CellWalk {
     fn new(px: f64, py: f64, dx: f64, dy: f64, w: i64, h: i64) -> Self {
+        // A component this small (an axis azimuth computed as `cos(3π/2)`) moves the line by
+        // less than a rounding step of the position over any march, so the cell found after a
+        // restart could be the one just left, and a walk starting on a grid line would keep
+        // re-entering it: take it as exactly zero.
+        let snap = |d: f64| if d.abs() < 1e-9 { 0.0 } else { d };
+        let (dx, dy) = (snap(dx), snap(dy));
         let mut c = CellWalk {
             px,
             py,
@@ -599,6 +605,32 @@ mod tests {
                     (got - want).abs() < 1e-9 * (1.0 + want.abs()),
                     "n {n} p ({px},{py}) phi {phi}: {got} vs {want}"
                 );
+            }
+        }
+    }
+
+    #[test]
+    fn axis_azimuths_with_rounding_noise_end_and_match_the_exact_axis() {
+        // (cos 270°, sin 270°) = (-1.8e-16, -1): from a vertex, a block skip used to restart the
+        // walk in the cell it had just left, for ever.
+        let hf = crate::generators::parse_generator("bumps:n=64,count=4,radius=8,height=6,seed=3")
+            .unwrap()
+            .build()
+            .unwrap();
+        let v = Visibility::new(&hf);
+        for deg in [90.0f64, 180.0, 270.0] {
+            let (dx, dy) = (deg.to_radians().cos(), deg.to_radians().sin());
+            let (ex, ey) = (dx.round(), dy.round());
+            for y in 0..64 {
+                for x in 0..64 {
+                    let (px, py, pz) = (x as f64, y as f64, hf.at(x, y));
+                    let a = v.horizon(px, py, pz, dx, dy, 0.026, f64::INFINITY);
+                    let b = v.horizon(px, py, pz, ex, ey, 0.026, f64::INFINITY);
+                    assert!((a - b).abs() < 1e-9, "{deg}° at ({x}, {y}): {a} vs {b}");
+                    let w = Vec3::new(-0.05 * dx, -0.05 * dy, 1.0).normalized();
+                    let (p, _) = v.first_hit(px, py, w);
+                    assert!(p.z.is_finite());
+                }
             }
         }
     }
