@@ -18,7 +18,8 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-fn time<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, T) {
+/// Median wall time of `reps` runs of `f` (seconds), and the last result.
+pub(crate) fn time<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, T) {
     let mut times = Vec::with_capacity(reps);
     let mut last = None;
     for _ in 0..reps {

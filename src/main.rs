@@ -264,6 +264,21 @@ enum BenchCmd {
         #[arg(long, default_value_t = 64)]
         sample: usize,
     },
+    /// The compressed search on a library of the paper's size (synthetic weights) against the
+    /// memory bandwidth.
+    Scan {
+        /// Library items (the paper's geometry library: 164,431).
+        #[arg(long, default_value_t = 164_431)]
+        items: usize,
+        /// Representatives (the default library's geometry library: 74).
+        #[arg(long, default_value_t = 74)]
+        reps: usize,
+        /// Samples (7 lights × 70 views).
+        #[arg(long, default_value_t = 490)]
+        samples: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
     /// fbar from a library's representatives (Eq. 12) against the exact evaluator.
     LibraryAccuracy {
         /// Library directory (built by `biscale library build`).
@@ -520,6 +535,12 @@ fn main() -> ExitCode {
         },
         Cmd::Bench { what } => match what {
             BenchCmd::Speed { reps } => biscale::bench::speed(reps.max(1)).map(|t| print!("{t}")),
+            BenchCmd::Scan {
+                items,
+                reps,
+                samples,
+                seed,
+            } => biscale::solve::bench::scan(items, reps, samples, seed).map(|t| print!("{t}")),
             BenchCmd::LibrarySpeed { profile, sample } => {
                 biscale::library::bench::speed(&profile, sample.max(1)).map(|t| print!("{t}"))
             }

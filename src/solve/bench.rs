@@ -1,0 +1,88 @@
+//! `biscale bench scan`: the compressed search (stage 1 of every solver) on a library of the
+//! paper's size, and how close it runs to this machine's memory bandwidth.
+//!
+//! The CX weights are synthetic (seeded), with the shape a paper-sized library would have; the
+//! search does not look at their values, so its time is the real one. The bandwidth is measured
+//! the same way the search reads its input: every thread streaming through its share of a large
+//! `f32` array.
+
+use super::{search_errors, SEARCH_BLOCK};
+use crate::bench::time;
+use crate::error::{Error, Result};
+use crate::frame::Vec3;
+use crate::rng::Rng;
+use crate::sampling::Samples;
+use rayon::prelude::*;
+
+/// Bytes of the array streamed to measure the memory bandwidth (far beyond any cache).
+const BANDWIDTH_BYTES: usize = 1 << 30;
+
+/// Sum of `v`, read in parallel in blocks (the reduction keeps the reads from being optimised out).
+fn stream_sum(v: &[f32]) -> f64 {
+    v.par_chunks(1 << 16)
+        .map(|c| c.iter().map(|&x| x as f64).sum::<f64>())
+        .sum()
+}
+
+/// The scan table for `items` library items with `reps` representatives, at `samples` samples.
+pub fn scan(items: usize, reps: usize, samples: usize, seed: u64) -> Result<String> {
+    if items == 0 || reps == 0 || samples == 0 {
+        return Err(Error::new(
+            "bench scan",
+            "--items, --reps and --samples must be at least 1",
+        ));
+    }
+    let threads = rayon::current_num_threads();
+    let mut r = Rng::new(seed);
+    let x: Vec<f32> = (0..items * reps)
+        .map(|_| r.range(-0.5, 1.0) as f32)
+        .collect();
+    let a: Vec<Vec<f64>> = (0..reps)
+        .map(|_| (0..samples).map(|_| r.uniform()).collect())
+        .collect();
+    let t: Vec<f64> = (0..samples).map(|_| r.uniform()).collect();
+    let s = Samples {
+        pairs: vec![(0, Vec3::new(0.0, 0.0, 1.0)); samples],
+        lights: vec![Vec3::new(0.0, 0.0, 1.0)],
+        weights: (0..samples).map(|_| r.range(0.5, 1.5)).collect(),
+    };
+    let (t1, e) = time(5, || search_errors(&s, &t, &a, &x, items));
+    if e.iter().any(|v| !v.is_finite()) {
+        return Err(Error::new(
+            "bench scan",
+            "the search returned a non-finite error",
+        ));
+    }
+    let (t8, _) = time(3, || {
+        for _ in 0..8 {
+            std::hint::black_box(search_errors(&s, &t, &a, &x, items));
+        }
+    });
+    let big: Vec<f32> = (0..BANDWIDTH_BYTES / 4).map(|i| (i % 7) as f32).collect();
+    let (tb, sum) = time(5, || stream_sum(&big));
+    std::hint::black_box(sum);
+    let bw = BANDWIDTH_BYTES as f64 / tb;
+    let (tx, _) = time(5, || stream_sum(&x));
+    let xbytes = (items * reps * 4) as f64;
+    let floor = xbytes / bw;
+    Ok(format!(
+        "Compressed search (stage 1) on a synthetic library: {items} items × {reps} representatives, \
+         {samples} samples, blocks of {SEARCH_BLOCK} items, {threads} threads, seed {seed}\n\n\
+         | quantity | value |\n|---|---|\n\
+         | CX weights read per search | {:.1} MB |\n\
+         | memory bandwidth (parallel read of {} MiB) | {:.1} GB/s |\n\
+         | bandwidth limit of one search (weights / bandwidth) | {:.2} ms |\n\
+         | one pass over the weights alone (read and sum) | {:.2} ms |\n\
+         | search, psi = 1 (median of 5) | {:.1} ms |\n\
+         | search, psi = 8 (8 rotations, median of 3) | {:.1} ms |\n\
+         | search time / bandwidth limit | {:.0}× |\n",
+        xbytes / 1e6,
+        BANDWIDTH_BYTES >> 20,
+        bw / 1e9,
+        floor * 1e3,
+        tx * 1e3,
+        t1 * 1e3,
+        t8 * 1e3,
+        t1 / floor,
+    ))
+}
