@@ -367,13 +367,18 @@ mod tests {
         let x: Vec<f32> = (0..items * c)
             .map(|_| rng.range(-0.5, 1.0) as f32)
             .collect();
-        let e = search_errors(&s, &t, &a, &x, items);
-        assert_eq!(e.len(), items);
-        for j in [0, 1, SEARCH_BLOCK - 1, SEARCH_BLOCK, items - 1] {
+        // Item j's reconstruction, unclamped and clamped at zero.
+        let recon = |j: usize| -> (Vec<f64>, Vec<f64>) {
             let f: Vec<f64> = (0..np)
                 .map(|p| (0..c).map(|k| a[k][p] * x[j * c + k] as f64).sum::<f64>())
                 .collect();
-            let clamped: Vec<f64> = f.iter().map(|v| v.max(0.0)).collect();
+            let clamped = f.iter().map(|v| v.max(0.0)).collect();
+            (f, clamped)
+        };
+        let e = search_errors(&s, &t, &a, &x, items);
+        assert_eq!(e.len(), items);
+        for j in [0, 1, SEARCH_BLOCK - 1, SEARCH_BLOCK, items - 1] {
+            let (f, clamped) = recon(j);
             let (ec, eu) = (s.rel_error(&t, &clamped), s.rel_error(&t, &f));
             // Among the best SEARCH_RESCORE by the Gram form: clamped; else the unclamped bound.
             assert!(
@@ -384,30 +389,15 @@ mod tests {
             assert!(e[j] >= ec - 1e-9);
         }
         let rescored = (0..items)
-            .filter(|&j| {
-                let f: Vec<f64> = (0..np)
-                    .map(|p| {
-                        (0..c)
-                            .map(|k| a[k][p] * x[j * c + k] as f64)
-                            .sum::<f64>()
-                            .max(0.0)
-                    })
-                    .collect();
-                (e[j] - s.rel_error(&t, &f)).abs() < 1e-9
-            })
+            .filter(|&j| (e[j] - s.rel_error(&t, &recon(j).1)).abs() < 1e-9)
             .count();
         assert!(rescored >= SEARCH_RESCORE, "{rescored}");
-        // A library within SEARCH_RESCORE items gets the clamped error everywhere.
+        // A library within SEARCH_RESCORE items gets the clamped error everywhere, and some of
+        // these items do reconstruct below zero somewhere (so the clamp is exercised).
         let small = search_errors(&s, &t, &a, &x, 100);
+        assert!((0..100).any(|j| recon(j).0.iter().any(|v| *v < 0.0)));
         for j in 0..100 {
-            let f: Vec<f64> = (0..np)
-                .map(|p| {
-                    (0..c)
-                        .map(|k| a[k][p] * x[j * c + k] as f64)
-                        .sum::<f64>()
-                        .max(0.0)
-                })
-                .collect();
+            let f = recon(j).1;
             assert!((small[j] - s.rel_error(&t, &f)).abs() < 1e-12, "item {j}");
         }
     }
