@@ -226,8 +226,13 @@ pub fn smallest(errors: &[f64], n: usize) -> Vec<usize> {
     let mut idx: Vec<usize> = (0..errors.len())
         .filter(|&i| errors[i].is_finite())
         .collect();
-    idx.sort_by(|&a, &b| errors[a].total_cmp(&errors[b]).then(a.cmp(&b)));
-    idx.truncate(n);
+    let order = |a: &usize, b: &usize| errors[*a].total_cmp(&errors[*b]).then(a.cmp(b));
+    // Partition around the n-th first (linear time), then sort only the n kept.
+    if n < idx.len() {
+        idx.select_nth_unstable_by(n, order);
+        idx.truncate(n);
+    }
+    idx.sort_by(order);
     idx
 }
 
@@ -293,22 +298,26 @@ pub fn search_errors(s: &Samples, t: &[f64], a: &[Vec<f64>], x: &[f32], items: u
     if items <= SEARCH_RESCORE {
         return clamped(None);
     }
+    // The Gram product runs in f32, the weights' own precision (twice the f64 rate); its
+    // rounding only decides which items are rescored, in f64, below.
     let q = aw.transpose() * &aw;
+    let q = Mat::<f32>::from_fn(c, c, |i, j| q[(i, j)] as f32);
     let bvec: Vec<f64> = (0..c)
         .map(|k| (0..np).map(|p| aw[(p, k)] * tw[p]).sum())
         .collect();
     let mut errors: Vec<f64> = blocks(items)
         .par_iter()
         .flat_map_iter(|&(j0, j1)| {
-            let xm = Mat::<f64>::from_fn(c, j1 - j0, |k, j| x[(j0 + j) * c + k] as f64);
+            let xm = Mat::<f32>::from_fn(c, j1 - j0, |k, j| x[(j0 + j) * c + k]);
             let qx = &q * &xm;
             let bvec = &bvec;
             (0..j1 - j0)
                 .map(move |j| {
                     let (mut quad, mut lin) = (0.0, 0.0);
                     for k in 0..c {
-                        quad += xm[(k, j)] * qx[(k, j)];
-                        lin += xm[(k, j)] * bvec[k];
+                        let xk = xm[(k, j)] as f64;
+                        quad += xk * qx[(k, j)] as f64;
+                        lin += xk * bvec[k];
                     }
                     rel(n2 - 2.0 * lin + quad)
                 })
@@ -348,6 +357,21 @@ pub fn fmt_dir(w: Vec3) -> String {
 mod tests {
     use super::*;
     use crate::frame::Vec3;
+
+    #[test]
+    fn smallest_keeps_the_n_best_in_order_with_ties_by_index() {
+        let e = [0.5, f64::NAN, 0.1, 0.3, 0.1, f64::INFINITY, 0.2, 0.3];
+        assert_eq!(smallest(&e, 3), vec![2, 4, 6]);
+        assert_eq!(smallest(&e, 5), vec![2, 4, 6, 3, 7]);
+        assert_eq!(smallest(&e, 100), vec![2, 4, 6, 3, 7, 0]);
+        assert!(smallest(&e, 0).is_empty());
+        let mut r = crate::rng::Rng::new(8);
+        let big: Vec<f64> = (0..5000).map(|_| (r.below(50) as f64) / 7.0).collect();
+        let mut want: Vec<usize> = (0..big.len()).collect();
+        want.sort_by(|&a, &b| big[a].total_cmp(&big[b]).then(a.cmp(&b)));
+        want.truncate(300);
+        assert_eq!(smallest(&big, 300), want);
+    }
 
     #[test]
     fn search_errors_are_clamped_for_the_best_and_bounded_for_the_rest() {
