@@ -401,20 +401,23 @@ mod tests {
         };
         let e = search_errors(&s, &t, &a, &x, items);
         assert_eq!(e.len(), items);
-        for j in [0, 1, SEARCH_BLOCK - 1, SEARCH_BLOCK, items - 1] {
+        // Each item has its clamped error (f64) or, outside the best SEARCH_RESCORE, the
+        // unclamped one from the f32 Gram product: an upper bound up to f32 rounding.
+        let mut rescored = 0;
+        for j in 0..items {
             let (f, clamped) = recon(j);
             let (ec, eu) = (s.rel_error(&t, &clamped), s.rel_error(&t, &f));
-            // Among the best SEARCH_RESCORE by the Gram form: clamped; else the unclamped bound.
-            assert!(
-                (e[j] - ec).abs() < 1e-9 || (e[j] - eu).abs() < 1e-9,
-                "item {j}: {} vs {ec} / {eu}",
-                e[j]
-            );
-            assert!(e[j] >= ec - 1e-9);
+            if (e[j] - ec).abs() < 1e-9 {
+                rescored += 1;
+            } else {
+                assert!(
+                    (e[j] - eu).abs() < 1e-5,
+                    "item {j}: {} vs {ec} / {eu}",
+                    e[j]
+                );
+            }
+            assert!(e[j] >= ec - 1e-5, "item {j}");
         }
-        let rescored = (0..items)
-            .filter(|&j| (e[j] - s.rel_error(&t, &recon(j).1)).abs() < 1e-9)
-            .count();
         assert!(rescored >= SEARCH_RESCORE, "{rescored}");
         // A library within SEARCH_RESCORE items gets the clamped error everywhere, and some of
         // these items do reconstruct below zero somewhere (so the clamp is exercised).
