@@ -287,3 +287,25 @@ fn joint_search_keeps_to_its_budget() {
         biscale::solve::material::closest_on_flat_patch(&lib, &look, few, &opt).unwrap();
     assert!(pairs.iter().all(|p| closest.contains(&p.material)));
 }
+
+#[test]
+fn bench_scan_prints_its_table_and_refuses_nonsense_sizes() {
+    let t = biscale::solve::bench::scan(5000, 8, 30, 1).unwrap();
+    for row in [
+        "5000 items × 8 representatives",
+        "| memory bandwidth",
+        "| search, psi = 1",
+        "| search, psi = 8",
+        "| search time / bandwidth limit",
+    ] {
+        assert!(t.contains(row), "missing {row:?} in\n{t}");
+    }
+    let e = biscale::solve::bench::scan(0, 8, 30, 1)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("--items"), "{e}");
+    let e = biscale::solve::bench::scan(1 << 40, 74, 490, 1)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("16 GiB"), "{e}");
+}

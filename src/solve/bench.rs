@@ -14,6 +14,9 @@ use crate::rng::Rng;
 use crate::sampling::Samples;
 use rayon::prelude::*;
 
+/// Most synthetic weights `bench scan` will allocate (16 GiB of `f32`).
+const MAX_WEIGHTS: usize = 1 << 32;
+
 /// Bytes of the array streamed to measure the memory bandwidth (far beyond any cache).
 const BANDWIDTH_BYTES: usize = 1 << 30;
 
@@ -30,6 +33,15 @@ pub fn scan(items: usize, reps: usize, samples: usize, seed: u64) -> Result<Stri
         return Err(Error::new(
             "bench scan",
             "--items, --reps and --samples must be at least 1",
+        ));
+    }
+    if items.saturating_mul(reps) > MAX_WEIGHTS || reps.saturating_mul(samples) > MAX_WEIGHTS {
+        return Err(Error::new(
+            "bench scan",
+            format!(
+                "--items × --reps ({items} × {reps}) and --reps × --samples must stay within \
+                 {MAX_WEIGHTS} (16 GiB of f32 weights)"
+            ),
         ));
     }
     let threads = rayon::current_num_threads();
