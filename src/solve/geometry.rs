@@ -12,7 +12,7 @@
 use super::{
     bvndf_of, exact_values, fast_values, library_heightfield, material_prefiltered, psi_angle,
     rotated_samples, search_errors, smallest, Candidate, Final, Look, SolveOptions, SolveResult,
-    SolveStats,
+    SolveStats, SEARCH_RESCORE,
 };
 use crate::error::Result;
 use crate::gamma::Response;
@@ -108,12 +108,13 @@ pub fn solve(
         .collect();
     // Stage 1: representatives' `fbar` × X for every geometry and rotation (Eq. 12).
     let mut scored: Vec<(f64, usize, usize)> = Vec::new();
+    let rescore = (SEARCH_RESCORE / rots.len()).max(opt.pool.max(opt.k));
     for (ri, r) in rots.iter().enumerate() {
         let a: Vec<Vec<f64>> = reps
             .par_iter()
             .map(|&k| data.values(k as usize, r))
             .collect::<Result<_>>()?;
-        let e = search_errors(&r.samples, &r.target, &a, xs, items.len());
+        let e = search_errors(&r.samples, &r.target, &a, xs, items.len(), rescore);
         scored.extend(e.into_iter().enumerate().map(|(j, e)| (e, j, ri)));
     }
     stats.items_searched = items.len() * rots.len();

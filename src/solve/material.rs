@@ -9,7 +9,7 @@
 
 use super::{
     exact_values, fast_values, rotated_samples, search_errors, smallest, Candidate, Final, Look,
-    SolveOptions, SolveResult, SolveStats, LIGHT_LOBE_RAYS,
+    SolveOptions, SolveResult, SolveStats, LIGHT_LOBE_RAYS, SEARCH_RESCORE,
 };
 use crate::bvndf::LobeSource;
 use crate::error::Result;
@@ -106,7 +106,7 @@ pub fn solve(
         .par_iter()
         .map(|&k| Ok(fixed.fbar(&prefiltered(k as usize)?)))
         .collect::<Result<_>>()?;
-    let e = search_errors(&samples, &target, &a, xs, items.len());
+    let e = search_errors(&samples, &target, &a, xs, items.len(), SEARCH_RESCORE);
     let beta = opt.beta.clamp(0.0, 1.0);
     let score = |m: usize, e: f64| {
         let (s, col, d) = best_colour(

@@ -244,12 +244,20 @@ pub fn smallest(errors: &[f64], n: usize) -> Vec<usize> {
 /// 60× the memory-bandwidth limit (`biscale bench scan`). So every item is first scored without
 /// the clamp through the Gram form — with `A_w = diag(w) A`, `t_w = diag(w) t`, the squared
 /// error is `|t_w|² − 2 xᵀ (A_wᵀ t_w) + xᵀ (A_wᵀ A_w) x`, `k² + k` operations per item — and
-/// the best [`SEARCH_RESCORE`] of those get the clamped error. Clamping can only lower an
-/// error (the target is never negative), so the rest keep an upper bound. A library of at
-/// most [`SEARCH_RESCORE`] items gets the clamped error for every item. Items are processed
+/// the best `rescore` of those get the clamped error. Clamping can only lower an error (the
+/// target is never negative), so the rest keep an upper bound. A library of at most `rescore`
+/// items gets the clamped error for every item. A solve shares [`SEARCH_RESCORE`] among its
+/// searches (one per rotation). Items are processed
 /// in blocks of [`SEARCH_BLOCK`] (in parallel), so memory stays `O(samples × block)` whatever
 /// the library's size.
-pub fn search_errors(s: &Samples, t: &[f64], a: &[Vec<f64>], x: &[f32], items: usize) -> Vec<f64> {
+pub fn search_errors(
+    s: &Samples,
+    t: &[f64],
+    a: &[Vec<f64>],
+    x: &[f32],
+    items: usize,
+    rescore: usize,
+) -> Vec<f64> {
     use faer::Mat;
     use rayon::prelude::*;
     let (np, c) = (t.len(), a.len());
@@ -295,7 +303,7 @@ pub fn search_errors(s: &Samples, t: &[f64], a: &[Vec<f64>], x: &[f32], items: u
             })
             .collect()
     };
-    if items <= SEARCH_RESCORE {
+    if items <= rescore {
         return clamped(None);
     }
     // The Gram product runs in f32, the weights' own precision (twice the f64 rate); its
@@ -324,14 +332,15 @@ pub fn search_errors(s: &Samples, t: &[f64], a: &[Vec<f64>], x: &[f32], items: u
                 .collect::<Vec<_>>()
         })
         .collect();
-    let best = smallest(&errors, SEARCH_RESCORE);
+    let best = smallest(&errors, rescore);
     for (j, e) in best.iter().zip(clamped(Some(&best))) {
         errors[*j] = e;
     }
     errors
 }
 
-/// Items of the compressed search that get the clamped error (see [`search_errors`]).
+/// Items of one solve's compressed search that get the clamped error, shared among its
+/// rotations (see [`search_errors`]).
 pub const SEARCH_RESCORE: usize = 4096;
 
 /// Items per block of the compressed search.
@@ -399,7 +408,7 @@ mod tests {
             let clamped = f.iter().map(|v| v.max(0.0)).collect();
             (f, clamped)
         };
-        let e = search_errors(&s, &t, &a, &x, items);
+        let e = search_errors(&s, &t, &a, &x, items, SEARCH_RESCORE);
         assert_eq!(e.len(), items);
         // Each item has its clamped error (f64) or, outside the best SEARCH_RESCORE, the
         // unclamped one from the f32 Gram product: an upper bound up to f32 rounding.
@@ -421,7 +430,7 @@ mod tests {
         assert!(rescored >= SEARCH_RESCORE, "{rescored}");
         // A library within SEARCH_RESCORE items gets the clamped error everywhere, and some of
         // these items do reconstruct below zero somewhere (so the clamp is exercised).
-        let small = search_errors(&s, &t, &a, &x, 100);
+        let small = search_errors(&s, &t, &a, &x, 100, SEARCH_RESCORE);
         assert!((0..100).any(|j| recon(j).0.iter().any(|v| *v < 0.0)));
         for j in 0..100 {
             let f = recon(j).1;
