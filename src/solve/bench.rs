@@ -6,7 +6,7 @@
 //! the same way the search reads its input: every thread streaming through its share of a large
 //! `f32` array.
 
-use super::{search_errors, SEARCH_BLOCK, SEARCH_RESCORE};
+use super::{rescore_share, search_errors, SEARCH_BLOCK, SEARCH_RESCORE};
 use crate::bench::time;
 use crate::error::{Error, Result};
 use crate::frame::Vec3;
@@ -67,7 +67,7 @@ pub fn scan(items: usize, reps: usize, samples: usize, seed: u64) -> Result<Stri
     }
     let (t8, _) = time(3, || {
         for _ in 0..8 {
-            std::hint::black_box(search_errors(&s, &t, &a, &x, items, SEARCH_RESCORE / 8));
+            std::hint::black_box(search_errors(&s, &t, &a, &x, items, rescore_share(8, 64)));
         }
     });
     let big: Vec<f32> = (0..BANDWIDTH_BYTES / 4).map(|i| (i % 7) as f32).collect();

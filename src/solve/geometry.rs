@@ -11,8 +11,8 @@
 
 use super::{
     bvndf_of, exact_values, fast_values, library_heightfield, material_prefiltered, psi_angle,
-    rotated_samples, search_errors, smallest, Candidate, Final, Look, SolveOptions, SolveResult,
-    SolveStats, SEARCH_RESCORE,
+    rescore_share, rotated_samples, search_errors, smallest, Candidate, Final, Look, SolveOptions,
+    SolveResult, SolveStats,
 };
 use crate::error::Result;
 use crate::gamma::Response;
@@ -108,7 +108,7 @@ pub fn solve(
         .collect();
     // Stage 1: representatives' `fbar` × X for every geometry and rotation (Eq. 12).
     let mut scored: Vec<(f64, usize, usize)> = Vec::new();
-    let rescore = (SEARCH_RESCORE / rots.len()).max(opt.pool.max(opt.k));
+    let rescore = rescore_share(rots.len(), opt.pool.max(opt.k));
     for (ri, r) in rots.iter().enumerate() {
         let a: Vec<Vec<f64>> = reps
             .par_iter()

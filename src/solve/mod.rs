@@ -343,6 +343,13 @@ pub fn search_errors(
 /// rotations (see [`search_errors`]).
 pub const SEARCH_RESCORE: usize = 4096;
 
+/// The `rescore` of each of a solve's `searches` (one per rotation): an equal share of
+/// [`SEARCH_RESCORE`], never fewer than the `pool` the solve keeps (the pool is one over all
+/// rotations, so the shares together cover it).
+pub fn rescore_share(searches: usize, pool: usize) -> usize {
+    (SEARCH_RESCORE / searches.max(1)).max(pool)
+}
+
 /// Items per block of the compressed search.
 pub const SEARCH_BLOCK: usize = 4096;
 
@@ -428,6 +435,19 @@ mod tests {
             assert!(e[j] >= ec - 1e-5, "item {j}");
         }
         assert!(rescored >= SEARCH_RESCORE, "{rescored}");
+        // A smaller share rescores fewer: the items it leaves hold the (larger) Gram bound.
+        let share = rescore_share(8, 64);
+        assert_eq!(share, SEARCH_RESCORE / 8);
+        assert_eq!(rescore_share(1000, 64), 64);
+        let e8 = search_errors(&s, &t, &a, &x, items, share);
+        let clamped_now = (0..items)
+            .filter(|&j| (e8[j] - s.rel_error(&t, &recon(j).1)).abs() < 1e-9)
+            .count();
+        assert!(
+            clamped_now >= share && clamped_now < rescored,
+            "{clamped_now} {rescored}"
+        );
+        assert!((0..items).all(|j| e8[j] >= e[j] - 1e-5));
         // A library within SEARCH_RESCORE items gets the clamped error everywhere, and some of
         // these items do reconstruct below zero somewhere (so the clamp is exercised).
         let small = search_errors(&s, &t, &a, &x, 100, SEARCH_RESCORE);
