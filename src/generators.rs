@@ -159,6 +159,21 @@ static GENS: &[GenDef] = &[
         ],
     },
     GenDef {
+        name: "brushed",
+        help: "random grooves along y whose facet slopes along x are exactly Gaussian (a brushed or sanded \
+               finish: it widens a lobe along x by that slope spread); keys: n=128, slope=0.2 (RMS slope along x), \
+               slope_y=0 (RMS slope of an independent profile along y; > 0 spreads both ways), kmin=2, kmax=12 \
+               (band of the random profile, cycles per patch; kmax at most n/4), seed=0",
+        params: &[
+            N,
+            p("slope", 0.2, Rule::Range(0.0, 10.0)),
+            p("slope_y", 0.0, Rule::Range(0.0, 10.0)),
+            p("kmin", 2.0, Rule::Int(1.0, 1024.0)),
+            p("kmax", 12.0, Rule::Int(1.0, 1024.0)),
+            SEED,
+        ],
+    },
+    GenDef {
         name: "texture",
         help: "height patch from an image by the paper's recipe (grey, 4n×4n, patch of a 4×4 grid, FFT high-pass, \
                histogram equalisation); keys: n=128, tex=cells (built-in texture) or file=PATH (a PNG), \
@@ -326,6 +341,14 @@ impl Generator {
         }
     }
 
+    /// Whether `key` takes integers only (counts, seeds, band limits): library draws round it.
+    pub fn is_integer(&self, key: &str) -> bool {
+        GENS[self.kind]
+            .params
+            .iter()
+            .any(|p| p.key == key && matches!(p.rule, Rule::Int(..)))
+    }
+
     /// A copy with `key` set to `value` (text as it would appear in a spec), validated.
     pub fn with_param(&self, key: &str, value: &str) -> Result<Generator> {
         let def = &GENS[self.kind];
@@ -486,6 +509,21 @@ impl Generator {
                     ),
                 );
             }
+            "brushed" => {
+                let (k0, k1) = (self.num("kmin"), self.num("kmax"));
+                if k0 > k1 {
+                    return cross("kmin", format!("kmin {k0} must be at most kmax {k1}"));
+                }
+                if k1 > n / 4.0 {
+                    return cross(
+                        "kmax",
+                        format!(
+                            "kmax {k1} exceeds n/4 = {} (the shortest wavelength needs 4 samples)",
+                            n / 4.0
+                        ),
+                    );
+                }
+            }
             "texture" => {
                 if self.num("cutoff") > n / 2.0 {
                     return cross(
@@ -570,6 +608,12 @@ impl Generator {
                 self.seed(),
             ),
             "pyramids" => pyramids(n, self.num("period"), self.num("height")),
+            "brushed" => {
+                let band = (self.num("kmin") as usize, self.num("kmax") as usize);
+                let px = gaussian_slope_profile(n, self.num("slope"), band, self.seed(), 0);
+                let py = gaussian_slope_profile(n, self.num("slope_y"), band, self.seed(), 1);
+                (0..n * n).map(|i| px[i % n] + py[i / n]).collect()
+            }
             "weave" => weave(n, self.num("period"), self.num("height")),
             "fbm" => {
                 let mut v = fbm_field(
@@ -763,6 +807,105 @@ impl PeriodicNoise {
     }
 }
 
+/// A periodic profile of `n` samples whose `n` slopes (`p[x + 1] - p[x]`, wrapping) are the
+/// Gaussian quantiles `Φ⁻¹((r + ½) / n)` scaled to RMS `slope` exactly, in the order of the slopes
+/// of a band-limited random profile (cosines of cycles `band.0..=band.1` per patch, random phases,
+/// amplitudes `1/k` so every cycle adds the same slope). The rank mapping keeps that profile's
+/// shape and makes the slope histogram Gaussian, so the facets' normal distribution is the
+/// Beckmann-like spread a rough finish has, with no tails and no peaks at the extremes (a sine's
+/// slopes pile up at its steepest). Quantiles are antisymmetric, so the slopes sum to zero and the
+/// profile closes on itself. Heights have zero mean. Substream `stream` of `seed`.
+fn gaussian_slope_profile(
+    n: usize,
+    slope: f64,
+    band: (usize, usize),
+    seed: u64,
+    stream: u64,
+) -> Vec<f64> {
+    if slope == 0.0 {
+        return vec![0.0; n];
+    }
+    let mut rng = Rng::stream(seed, stream);
+    let mut shape = vec![0.0; n];
+    for k in band.0..=band.1 {
+        let phase = rng.uniform() * TAU;
+        let a = 1.0 / k as f64;
+        for (x, v) in shape.iter_mut().enumerate() {
+            *v += a * (TAU * (k * x % n) as f64 / n as f64 + phase).cos();
+        }
+    }
+    let d: Vec<f64> = (0..n).map(|x| shape[(x + 1) % n] - shape[x]).collect();
+    let mut order: Vec<usize> = (0..n).collect();
+    order.sort_by(|&a, &b| d[a].total_cmp(&d[b]).then(a.cmp(&b)));
+    // Quantiles of the lower half, mirrored: q[n - 1 - r] = -q[r] exactly.
+    let mut q = vec![0.0; n];
+    for r in 0..n / 2 {
+        q[r] = normal_quantile((r as f64 + 0.5) / n as f64);
+        q[n - 1 - r] = -q[r];
+    }
+    let rms = (q.iter().map(|v| v * v).sum::<f64>() / n as f64).sqrt();
+    let mut slopes = vec![0.0; n];
+    for (r, &x) in order.iter().enumerate() {
+        slopes[x] = slope * q[r] / rms;
+    }
+    let mut p = Vec::with_capacity(n);
+    let mut h = 0.0;
+    for s in &slopes {
+        p.push(h);
+        h += s;
+    }
+    let mean = p.iter().sum::<f64>() / n as f64;
+    p.iter_mut().for_each(|v| *v -= mean);
+    p
+}
+
+/// The standard normal quantile `Φ⁻¹(p)` for `p` in `(0, 1)`, by Acklam's rational approximation
+/// (relative error below 1.2e-9), exactly antisymmetric about `p = ½`.
+fn normal_quantile(p: f64) -> f64 {
+    const A: [f64; 6] = [
+        -3.969683028665376e+01,
+        2.209460984245205e+02,
+        -2.759285104469687e+02,
+        1.383577518672690e+02,
+        -3.066479806614716e+01,
+        2.506628277459239e+00,
+    ];
+    const B: [f64; 5] = [
+        -5.447609879822406e+01,
+        1.615858368580409e+02,
+        -1.556989798598866e+02,
+        6.680131188771972e+01,
+        -1.328068155288572e+01,
+    ];
+    const C: [f64; 6] = [
+        -7.784894002430293e-03,
+        -3.223964580411365e-01,
+        -2.400758277161838e+00,
+        -2.549732539343734e+00,
+        4.374664141464968e+00,
+        2.938163982698783e+00,
+    ];
+    const D: [f64; 4] = [
+        7.784695709041462e-03,
+        3.224671290700398e-01,
+        2.445134137142996e+00,
+        3.754408661907416e+00,
+    ];
+    if p > 0.5 {
+        return -normal_quantile(1.0 - p);
+    }
+    if p < 0.02425 {
+        let q = (-2.0 * p.ln()).sqrt();
+        (((((C[0] * q + C[1]) * q + C[2]) * q + C[3]) * q + C[4]) * q + C[5])
+            / ((((D[0] * q + D[1]) * q + D[2]) * q + D[3]) * q + 1.0)
+    } else {
+        let q = p - 0.5;
+        let r = q * q;
+        (((((A[0] * r + A[1]) * r + A[2]) * r + A[3]) * r + A[4]) * r + A[5]) * q
+            / (((((B[0] * r + B[1]) * r + B[2]) * r + B[3]) * r + B[4]) * r + 1.0)
+    }
+}
+
 /// Periodic fBm on an `n × n` grid: octave `o` has `round(cells · lacunarity^o)` lattice cells
 /// (octaves finer than one cell per sample are skipped) and weight `persistence^o`. Not normalised.
 pub(crate) fn fbm_field(
@@ -839,6 +982,8 @@ mod tests {
         "fbm:n=128,octaves=6,seed=5",
         "fbm:n=64,cells=3,lacunarity=2.5,persistence=0.7,amplitude=1,seed=2",
         "texture:n=64,tex=cells,patch=5,amplitude=3",
+        "brushed:n=64,slope=0.3,seed=4",
+        "brushed:n=100,slope=0.2,slope_y=0.1,kmin=1,kmax=25,seed=2",
     ];
 
     #[test]
@@ -893,6 +1038,7 @@ mod tests {
             "dimples:n=64",
             "fbm:n=64",
             "texture:n=32,tex=marble",
+            "brushed:n=64",
         ] {
             let a = parse_generator(&format!("{base},seed=1"))
                 .unwrap()
@@ -915,6 +1061,67 @@ mod tests {
             .unwrap();
         let peak = f.samples().iter().fold(0.0f64, |m, v| m.max(v.abs()));
         assert!((peak - 2.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn brushed_slopes_are_gaussian_quantiles_of_the_asked_rms() {
+        let n = 64;
+        let b = parse_generator("brushed:n=64,slope=0.25,seed=7")
+            .unwrap()
+            .build()
+            .unwrap();
+        // Slopes along x (wrapping) are the same on every row; along y they are zero.
+        let mut sx: Vec<f64> = (0..n).map(|x| b.at(x + 1, 0) - b.at(x, 0)).collect();
+        for y in 0..n {
+            for x in 0..n {
+                assert!((b.at(x + 1, y) - b.at(x, y) - sx[x as usize]).abs() < 1e-12);
+                assert_eq!(b.at(x, y + 1), b.at(x, y));
+            }
+        }
+        let rms = (sx.iter().map(|v| v * v).sum::<f64>() / n as f64).sqrt();
+        assert!((rms - 0.25).abs() < 1e-12, "RMS slope {rms}");
+        // Sorted, they are the normal quantiles at (r + 1/2)/n up to one scale.
+        sx.sort_by(f64::total_cmp);
+        let scale = sx[n as usize - 1] / normal_quantile((n as f64 - 0.5) / n as f64);
+        for (r, s) in sx.iter().enumerate() {
+            let q = normal_quantile((r as f64 + 0.5) / n as f64);
+            assert!(
+                (s - scale * q).abs() < 1e-12,
+                "slope rank {r}: {s} vs {}",
+                scale * q
+            );
+        }
+        // Reference values of the quantile function (to its 1.2e-9 relative accuracy).
+        for (p, z) in [
+            (0.5, 0.0),
+            (0.975, 1.959963984540054),
+            (0.001, -3.090232306167814),
+        ] {
+            assert!(
+                (normal_quantile(p) - z).abs() <= 1e-8 * z.abs().max(1.0),
+                "{p}"
+            );
+        }
+        // slope_y adds an independent profile along y; both triangles of a cell share the
+        // separable slopes, so the two axes' spreads are independent.
+        let c = parse_generator("brushed:n=64,slope=0.2,slope_y=0.1,seed=7")
+            .unwrap()
+            .build()
+            .unwrap();
+        let sy: Vec<f64> = (0..n).map(|y| c.at(0, y + 1) - c.at(0, y)).collect();
+        let rms_y = (sy.iter().map(|v| v * v).sum::<f64>() / n as f64).sqrt();
+        assert!((rms_y - 0.1).abs() < 1e-12, "RMS slope along y {rms_y}");
+        for bad in [
+            "brushed:n=64,kmax=17",
+            "brushed:kmin=5,kmax=4",
+            "brushed:slope=-1",
+        ] {
+            let e = parse_generator(bad).unwrap_err().to_string();
+            assert!(
+                e.contains("key 'k") || e.contains("key 'slope'"),
+                "{bad}: {e}"
+            );
+        }
     }
 
     #[test]

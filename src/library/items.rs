@@ -35,8 +35,6 @@ pub struct MaterialItem {
     pub spec: String,
 }
 
-const INTEGER_KEYS: [&str; 5] = ["count", "cells", "octaves", "patch", "seed"];
-
 /// Where item `j` of a family of `n` falls in each parameter's range: stratified (Latin
 /// hypercube). Parameter `p` takes stratum `(a_p j + b_p) mod n` of `n` equal strata, with `a_p`
 /// coprime to `n` (so every stratum is taken once) and `a_p / n` near a different irrational
@@ -102,6 +100,7 @@ fn draw(
     params: &BTreeMap<String, Range2>,
     log: &[String],
     strata: Strata,
+    integer: &dyn Fn(&str) -> bool,
 ) -> Vec<(String, f64)> {
     params
         .iter()
@@ -113,7 +112,7 @@ fn draw(
             } else {
                 lo + u * (hi - lo)
             };
-            let v = if INTEGER_KEYS.contains(&k.as_str()) {
+            let v = if integer(k) {
                 v.round()
             } else {
                 // Four significant digits keep names readable and specs exact.
@@ -183,12 +182,14 @@ fn geometry_spec(
         n: fam.count,
         offset: Rng::stream(prof.seed, GEOMETRY_STREAM + (index - j) as u64).below(1 << 31),
     };
-    let drawn = draw(&mut rng, &fam.params, &fam.log, strata);
+    let gen = crate::generators::parse_generator(&format!("{}:", fam.generator))?;
+    let drawn = draw(&mut rng, &fam.params, &fam.log, strata, &|k| {
+        gen.is_integer(k)
+    });
     let has = |k: &str| drawn.iter().any(|(kk, _)| kk == k);
     for (k, v) in &drawn {
         items.push(format!("{k}={v}"));
     }
-    let gen = crate::generators::parse_generator(&format!("{}:", fam.generator))?;
     if gen.get("seed").is_some() && !has("seed") {
         items.push(format!("seed={}", rng.below(1 << 31)));
     }
@@ -247,7 +248,8 @@ pub fn material_items(prof: &LibraryProfile, base: &Path) -> Result<Vec<Material
                 offset: Rng::stream(prof.seed, MATERIAL_STREAM + ((fi as u64) << 32) + (1 << 31))
                     .below(1 << 31),
             };
-            let drawn = draw(&mut rng, &fam.params, &fam.log, strata);
+            // Material parameters are all continuous.
+            let drawn = draw(&mut rng, &fam.params, &fam.log, strata, &|_| false);
             for &a in &prof.material.lambert {
                 let spec = material_spec(fam, &drawn, a);
                 parse_material(&spec).map_err(|e| e.within(&ctx))?;
