@@ -71,6 +71,10 @@ fn geometry_solver_is_deterministic_sorted_and_reads_no_material_arrays() {
         assert!(x.error.is_finite() && x.search_error.is_finite());
     }
     assert!(a.candidates.windows(2).all(|w| w[0].error <= w[1].error));
+    // Three different geometries (each at its best rotation), not one geometry turned twice.
+    let distinct: std::collections::BTreeSet<_> =
+        a.candidates.iter().map(|c| c.geometry).collect();
+    assert_eq!(distinct.len(), 3, "{:?}", a.candidates);
     let reads = lib.reads().join(" ");
     assert!(
         !reads.contains("material/"),

@@ -6,7 +6,7 @@
 //! representatives × CX weights (Eq. 12: `fbar` is linear in the binned BVNDF the CX weights
 //! were fitted to, so any accurate evaluation of the representatives may be combined). The best
 //! `pool` (geometry, rotation) pairs are re-ranked with their own light lobes, and the best `k`
-//! evaluated with the fast or exact evaluator. With `rerank_fast = false` both stages use the
+//! geometries — each once, at its best rotation — evaluated with the fast or exact evaluator. With `rerank_fast = false` both stages use the
 //! binned columns instead (the material's [`Response`]), for comparison.
 
 use super::{
@@ -134,6 +134,9 @@ pub fn solve(
         })
         .collect::<Result<_>>()?;
     reranked.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.2.cmp(&b.2)));
+    // Each geometry once, at its best rotation: the K answers are K different geometries.
+    let mut seen = std::collections::HashSet::new();
+    reranked.retain(|r| seen.insert(r.2));
     reranked.truncate(opt.k.max(1));
     stats.rerank_seconds = t1.elapsed().as_secs_f64();
     // Stage 3: the final evaluator.
