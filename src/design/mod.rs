@@ -163,7 +163,9 @@ pub fn run(job: &DesignJob) -> Result<String> {
     )?;
     let opt = SolveOptions {
         k: scene.candidates,
-        pool: scene.candidates.max(64),
+        // The pool counts (geometry, rotation) pairs; the solver keeps each geometry once, so
+        // `candidates` different geometries need up to `candidates × psi` pairs.
+        pool: (scene.candidates * scene.psi.max(1)).max(64),
         psi: scene.psi,
         // The fabrication stage evaluates the designed and the made surface of every feasible
         // candidate with the fast evaluator; a third solver stage would repeat that.
