@@ -72,8 +72,7 @@ fn geometry_solver_is_deterministic_sorted_and_reads_no_material_arrays() {
     }
     assert!(a.candidates.windows(2).all(|w| w[0].error <= w[1].error));
     // Three different geometries (each at its best rotation), not one geometry turned twice.
-    let distinct: std::collections::BTreeSet<_> =
-        a.candidates.iter().map(|c| c.geometry).collect();
+    let distinct: std::collections::BTreeSet<_> = a.candidates.iter().map(|c| c.geometry).collect();
     assert_eq!(distinct.len(), 3, "{:?}", a.candidates);
     let reads = lib.reads().join(" ");
     assert!(
@@ -312,4 +311,36 @@ fn bench_scan_prints_its_table_and_refuses_nonsense_sizes() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("16 GiB"), "{e}");
+}
+
+/// The general solver's K answers are K different (geometry, material) pairs, each at its best
+/// rotation, sorted by error.
+#[test]
+fn general_solver_answers_are_distinct_combinations() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    // Bumps and dimples: nearly the same look at every rotation, so each pair is found at several.
+    for j in [10, 11, 13] {
+        let look = combo(&lib, j, 2);
+        let opt = SolveOptions {
+            k: 6,
+            pool: 16,
+            psi: 4,
+            final_eval: Final::Fast,
+            ..Default::default()
+        };
+        let g = biscale::solve::general::GeneralOptions {
+            starts: 2,
+            max_iterations: 2,
+            ..Default::default()
+        };
+        let r = biscale::solve::general::solve(&lib, &look, &opt, &g).unwrap();
+        assert!(!r.candidates.is_empty());
+        let pairs: std::collections::BTreeSet<_> = r
+            .candidates
+            .iter()
+            .map(|c| (c.geometry, c.material))
+            .collect();
+        assert_eq!(pairs.len(), r.candidates.len(), "{:?}", r.candidates);
+        assert!(r.candidates.windows(2).all(|w| w[0].error <= w[1].error));
+    }
 }

@@ -176,15 +176,14 @@ pub fn explore(
             m = best_m.material.unwrap_or(m);
         }
     }
-    // Distinct combinations, best first.
+    // Distinct combinations, best first: a (geometry, material) pair once, at its best rotation.
     seen.sort_by(|a, b| a.error.total_cmp(&b.error));
     let mut uniq: Vec<Candidate> = Vec::new();
     for c in seen {
-        if !uniq.iter().any(|u| {
-            u.geometry == c.geometry
-                && u.material == c.material
-                && (u.psi_deg - c.psi_deg).abs() < 1e-6
-        }) {
+        if !uniq
+            .iter()
+            .any(|u| u.geometry == c.geometry && u.material == c.material)
+        {
             uniq.push(c);
         }
     }
