@@ -344,3 +344,52 @@ fn general_solver_answers_are_distinct_combinations() {
         assert!(r.candidates.windows(2).all(|w| w[0].error <= w[1].error));
     }
 }
+
+/// Visually equivalent details: every kept combination is within the bound, no two are the
+/// same pair, and the first pass keeps only combinations that differ in both parts.
+#[test]
+fn veds_are_within_the_bound_and_never_the_same_pair() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let look = combo(&lib, 10, 9);
+    let opt = SolveOptions {
+        k: 3,
+        pool: 8,
+        psi: 2,
+        final_eval: Final::Fast,
+        ..Default::default()
+    };
+    let g = biscale::solve::general::GeneralOptions {
+        starts: 3,
+        max_iterations: 2,
+        ..Default::default()
+    };
+    let bound = 0.5;
+    let r = biscale::solve::veds::solve(&lib, &look, &opt, &g, 5, bound, 0.98).unwrap();
+    let c = &r.candidates;
+    assert!(c.len() >= 2, "{c:?}");
+    assert!(c.iter().all(|c| c.error <= bound));
+    let note = r.stats.notes.last().unwrap();
+    let strict: usize = note
+        .split(": ")
+        .nth(1)
+        .and_then(|s| s.split(' ').next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("note: {note}"));
+    // This case needs both passes: the first finds fewer than five fully different pairs.
+    assert!(strict >= 1 && strict < c.len(), "{note}");
+    for i in 0..c.len() {
+        for j in 0..i {
+            let (a, b) = (&c[i], &c[j]);
+            assert!(
+                a.geometry != b.geometry || a.material != b.material,
+                "{c:?}"
+            );
+            if i < strict {
+                assert!(
+                    a.geometry != b.geometry && a.material != b.material,
+                    "{c:?}"
+                );
+            }
+        }
+    }
+}

@@ -90,6 +90,9 @@ pub fn run(job: &SolveJob) -> Result<String> {
         "solve: search {:.3} s over {} items via {} representatives, re-rank {:.3} s, final {:.3} s",
         s.search_seconds, s.items_searched, s.representatives, s.rerank_seconds, s.final_seconds
     ));
+    for n in &s.notes {
+        progress.note(&format!("solve: {n}"));
+    }
     if job.json {
         #[derive(serde::Serialize)]
         struct Out<'a> {

@@ -1,9 +1,17 @@
 //! Visually equivalent details (Sec. 7, Fig. 11): several *different* (geometry, material)
 //! combinations that all reproduce the look within an error bound. The general solver's
-//! exploration from many starts gives a pool; it is walked best first, and a combination is kept
-//! only if its geometry and its material both differ from every kept one — by index, and by
-//! their compressed library coordinates (cosine similarity below `max_similarity`), so two
-//! near-identical grooves or two near-identical glossy lobes do not both count.
+//! exploration from many starts gives a pool, walked best first in two passes. Two geometries
+//! (or two materials) *differ* when their indices differ and their compressed library
+//! coordinates have a cosine similarity below `max_similarity`, so two near-identical grooves or
+//! two near-identical glossy lobes count as one.
+//!
+//! 1. A combination is kept if its geometry and its material both differ from every kept one:
+//!    the most diverse set first.
+//! 2. If that leaves fewer than asked, the rest of the pool is walked again and a combination is
+//!    kept if, against every kept one, its geometry or its material differs — another groove for
+//!    the same metal is another detail, but the same pair twice is not.
+//!
+//! The notes say how many details each pass kept.
 
 use super::general::{explore, finalize, GeneralOptions};
 use super::{Look, SolveOptions, SolveResult};
@@ -40,42 +48,60 @@ pub fn solve(
     let mc = lib.array("material/coords.bsa")?;
     let (gr, mr) = (gc.header.shape[1], mc.header.shape[1]);
     let (gc, mc) = (gc.f32s()?, mc.f32s()?);
-    let grow = |j: usize| &gc[j * gr..(j + 1) * gr];
-    let mrow = |m: usize| &mc[m * mr..(m + 1) * mr];
-    let mut kept = Vec::new();
-    let mut tried = 0;
-    for c in pool {
-        if kept.len() >= count || tried >= 4 * count.max(1) {
-            break;
+    // Whether items `a` and `b` of a coordinate table with rows of `w` differ.
+    let differ = |a: Option<usize>, b: Option<usize>, coords: &[f32], w: usize| match (a, b) {
+        (Some(a), Some(b)) => {
+            a != b
+                && cosine(&coords[a * w..(a + 1) * w], &coords[b * w..(b + 1) * w]) < max_similarity
         }
-        let (Some(j), Some(m)) = (c.geometry, c.material) else {
-            continue;
-        };
-        let distinct = kept.iter().all(|k: &super::Candidate| {
-            let (kj, km) = (
-                k.geometry.unwrap_or(usize::MAX),
-                k.material.unwrap_or(usize::MAX),
-            );
-            kj != j
-                && km != m
-                && cosine(grow(j), grow(kj)) < max_similarity
-                && cosine(mrow(m), mrow(km)) < max_similarity
-        });
-        if !distinct {
-            continue;
-        }
-        tried += 1;
-        let fin = finalize(lib, look, vec![c], opt)?;
-        if let Some(f) = fin.into_iter().next() {
-            if f.error <= bound {
-                kept.push(f);
+        _ => a != b,
+    };
+    let mut kept: Vec<super::Candidate> = Vec::new();
+    let mut per_pass = [0usize; 2];
+    // Finalised combinations over the bound are not evaluated twice.
+    let mut rejected: Vec<(Option<usize>, Option<usize>)> = Vec::new();
+    for (pass, strict) in [true, false].into_iter().enumerate() {
+        let mut tried = 0;
+        for c in &pool {
+            if kept.len() >= count || tried >= 4 * count.max(1) {
+                break;
+            }
+            if c.geometry.is_none() || c.material.is_none() {
+                continue;
+            }
+            let key = (c.geometry, c.material);
+            if rejected.contains(&key) {
+                continue;
+            }
+            let ok = kept.iter().all(|k| {
+                let g = differ(c.geometry, k.geometry, gc, gr);
+                let m = differ(c.material, k.material, mc, mr);
+                if strict {
+                    g && m
+                } else {
+                    g || m
+                }
+            });
+            if !ok {
+                continue;
+            }
+            tried += 1;
+            let fin = finalize(lib, look, vec![c.clone()], opt)?;
+            match fin.into_iter().next() {
+                Some(f) if f.error <= bound => {
+                    kept.push(f);
+                    per_pass[pass] += 1;
+                }
+                _ => rejected.push(key),
             }
         }
     }
     stats.notes.push(format!(
-        "{} visually equivalent details within {:.1} %",
+        "{} visually equivalent details within {:.1} %: {} differing from all others in both geometry and material, {} more in one of the two",
         kept.len(),
-        bound * 100.0
+        bound * 100.0,
+        per_pass[0],
+        per_pass[1]
     ));
     Ok(SolveResult {
         candidates: kept,
