@@ -75,19 +75,23 @@ struct GenDef {
     name: &'static str,
     help: &'static str,
     params: &'static [Param],
+    /// The key the relief scales with linearly (heights × s = that key × s), if any.
+    amplitude: Option<&'static str>,
 }
 
 static GENS: &[GenDef] = &[
-    GenDef { name: "flat", help: "a flat patch; keys: n=128", params: &[N] },
+    GenDef { name: "flat", help: "a flat patch; keys: n=128", params: &[N], amplitude: None },
     GenDef {
         name: "vgroove",
         help: "symmetric V grooves along y (a pure V, no flat land); keys: n=128, period=16 (samples), depth=4",
         params: &[N, p("period", 16.0, Rule::Period), p("depth", 4.0, Rule::NonNeg)],
+        amplitude: Some("depth"),
     },
     GenDef {
         name: "sine",
         help: "sinusoidal grooves along y; keys: n=128, period=16 (samples), amplitude=2 (half peak-to-peak)",
         params: &[N, p("period", 16.0, Rule::Period), p("amplitude", 2.0, Rule::NonNeg)],
+        amplitude: Some("amplitude"),
     },
     GenDef {
         name: "ugroove",
@@ -99,6 +103,7 @@ static GENS: &[GenDef] = &[
             p("width", 8.0, Rule::Positive),
             p("depth", 4.0, Rule::NonNeg),
         ],
+        amplitude: Some("depth"),
     },
     GenDef {
         name: "bricks",
@@ -111,6 +116,7 @@ static GENS: &[GenDef] = &[
             p("mortar", 2.0, Rule::Positive),
             p("depth", 2.0, Rule::NonNeg),
         ],
+        amplitude: Some("depth"),
     },
     GenDef {
         name: "bumps",
@@ -122,6 +128,7 @@ static GENS: &[GenDef] = &[
             p("height", 4.0, Rule::NonNeg),
             SEED,
         ],
+        amplitude: Some("height"),
     },
     GenDef {
         name: "dimples",
@@ -133,16 +140,19 @@ static GENS: &[GenDef] = &[
             p("height", 4.0, Rule::NonNeg),
             SEED,
         ],
+        amplitude: Some("height"),
     },
     GenDef {
         name: "pyramids",
         help: "square pyramids in a grid; keys: n=128, period=16 (base side), height=4",
         params: &[N, p("period", 16.0, Rule::Period), p("height", 4.0, Rule::NonNeg)],
+        amplitude: Some("height"),
     },
     GenDef {
         name: "weave",
         help: "plain weave of round threads over/under; keys: n=128, period=16 (thread spacing), height=4",
         params: &[N, p("period", 16.0, Rule::Period), p("height", 4.0, Rule::NonNeg)],
+        amplitude: Some("height"),
     },
     GenDef {
         name: "fbm",
@@ -157,6 +167,7 @@ static GENS: &[GenDef] = &[
             p("amplitude", 4.0, Rule::NonNeg),
             SEED,
         ],
+        amplitude: Some("amplitude"),
     },
     GenDef {
         name: "brushed",
@@ -172,6 +183,7 @@ static GENS: &[GenDef] = &[
             p("kmax", 12.0, Rule::Int(1.0, 1024.0)),
             SEED,
         ],
+        amplitude: Some("slope"),
     },
     GenDef {
         name: "texture",
@@ -187,6 +199,7 @@ static GENS: &[GenDef] = &[
             p("cutoff", 4.0, Rule::NonNeg),
             SEED,
         ],
+        amplitude: Some("amplitude"),
     },
 ];
 
@@ -339,6 +352,27 @@ impl Generator {
             Value::Num(v) => Some(*v),
             Value::Text(_) => None,
         }
+    }
+
+    /// The continuous shape parameters refinement may vary, with their values: numeric and
+    /// non-zero, not integers (counts, band limits, seeds, `n`), and not the amplitude key, which
+    /// a relief scale covers.
+    pub fn shape_params(&self) -> Vec<(&'static str, f64)> {
+        let def = &GENS[self.kind];
+        def.params
+            .iter()
+            .zip(&self.values)
+            .filter_map(|(p, v)| match v {
+                Value::Num(x)
+                    if *x != 0.0
+                        && !matches!(p.rule, Rule::Int(..))
+                        && Some(p.key) != def.amplitude =>
+                {
+                    Some((p.key, *x))
+                }
+                _ => None,
+            })
+            .collect()
     }
 
     /// Whether `key` takes integers only (counts, seeds, band limits): library draws round it.
@@ -1122,6 +1156,27 @@ mod tests {
                 "{bad}: {e}"
             );
         }
+    }
+
+    #[test]
+    fn shape_params_leave_out_integers_seeds_amplitudes_and_zeros() {
+        let keys = |spec: &str| -> Vec<&'static str> {
+            parse_generator(spec)
+                .unwrap()
+                .shape_params()
+                .into_iter()
+                .map(|(k, _)| k)
+                .collect()
+        };
+        assert_eq!(
+            keys("bricks:length=30,height=13,mortar=2,depth=2"),
+            ["length", "height", "mortar"]
+        );
+        assert_eq!(keys("bumps:count=5,radius=4,height=2,seed=3"), ["radius"]);
+        assert_eq!(keys("fbm:cells=3"), ["persistence", "lacunarity"]);
+        assert!(keys("brushed:slope=0.2").is_empty());
+        assert_eq!(keys("brushed:slope=0.2,slope_y=0.1"), ["slope_y"]);
+        assert!(keys("flat").is_empty());
     }
 
     #[test]

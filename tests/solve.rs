@@ -393,3 +393,54 @@ fn veds_are_within_the_bound_and_never_the_same_pair() {
         }
     }
 }
+
+/// With the material left free, refinement also turns the material's parameters and the
+/// generator's shape parameters; what it reports parses back, and it never makes the detail worse.
+#[test]
+fn design_refines_shape_and_free_material_parameters() {
+    let dir = tiny_library();
+    let out = std::env::temp_dir().join(format!("biscale-refine-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    std::fs::create_dir_all(&out).unwrap();
+    let scene = out.join("scene.toml");
+    std::fs::write(
+        &scene,
+        "name = \"t2\"\ntarget = \"blinn:n=40+lambert:albedo=0.25\"\n\
+         profile = \"cnc-ball1-aluminium\"\ntile_mm = [20.0, 20.0]\nviewing_distance_mm = 100000.0\n\
+         details = 1\ncandidates = 4\npsi = 1\nlibrary_profile = \"tiny\"\nrefine_evaluations = 12\n",
+    )
+    .unwrap();
+    let job = biscale::design::DesignJob {
+        scene: Some(scene),
+        outputs: out.clone(),
+        force: false,
+        library: Some(dir.clone()),
+        cache_dir: None,
+        quiet: true,
+    };
+    let text = biscale::design::run(&job).unwrap();
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("t2/summary.json")).unwrap()).unwrap();
+    let d = &summary["details"].as_array().unwrap()[0];
+    let r = &d["refinement"];
+    let names: Vec<&str> = r["changes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["name"].as_str().unwrap())
+        .collect();
+    assert!(names.starts_with(&["scale", "psi_deg"]), "{r}\n{text}");
+    assert!(
+        names.iter().any(|n| n.starts_with("material.")),
+        "no material parameter refined: {r}"
+    );
+    assert!(r["error_after"].as_f64().unwrap() <= r["error_before"].as_f64().unwrap());
+    if let Some(m) = r["material_spec"].as_str() {
+        biscale::material::parse_material(m).unwrap();
+        assert_eq!(d["material"].as_str(), Some(m), "{d}");
+    }
+    if let Some(g) = r["geometry_spec"].as_str() {
+        biscale::generators::parse_generator(g).unwrap();
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -290,17 +290,32 @@ pub fn run(job: &DesignJob) -> Result<String> {
         ),
         &mut log,
     );
-    // Continuous refinement of the best few: amplitude and rotation under the profile's limits.
+    // Continuous refinement of the best few: amplitude, rotation, shape and (when the scene
+    // leaves it free) material parameters, under the profile's limits.
     let mut refined_by_spec: BTreeMap<String, refine::Refined> = BTreeMap::new();
     let t2 = Instant::now();
+    let prefilter_cfg = crate::library::build::prefilter_config(&lib.profile);
     for entry in ranked.iter_mut().take(scene.refine) {
         let (score, c, rep, e_design, e_made, hf, mat) = entry;
-        let pf = &prefiltered[&c.material_spec];
+        let pf = prefiltered[&c.material_spec].clone();
+        let subject = refine::Subject {
+            hf,
+            // A geometry the scene fixes keeps its shape; a library item's generator is refined.
+            generator: match fixed_hf {
+                Some(_) => None,
+                None => crate::generators::parse_generator(&c.geometry_spec).ok(),
+            },
+            material: match scene.fixed_material {
+                Some(_) => None,
+                None => Some(c.material_spec.clone()),
+            },
+            pf: &pf,
+            prefilter: prefilter_cfg.clone(),
+            psi0_deg: c.psi_deg,
+        };
         let r = refine::refine(
             &look,
-            hf,
-            pf,
-            c.psi_deg,
+            &subject,
             rep.patch_mm,
             &profile,
             &opt,
@@ -308,7 +323,11 @@ pub fn run(job: &DesignJob) -> Result<String> {
             scene.refine_evaluations,
         )?;
         if r.accepted {
-            let hf2 = hf.scaled(r.scale);
+            let base = match &r.geometry_spec {
+                Some(g) => crate::solve::library_heightfield(g)?,
+                None => hf.clone(),
+            };
+            let hf2 = base.scaled(r.scale);
             let rep2 = check_detail(
                 &hf2,
                 &profile,
@@ -319,23 +338,36 @@ pub fn run(job: &DesignJob) -> Result<String> {
                 },
             )?;
             if rep2.feasible {
+                if let Some(m) = &r.material_spec {
+                    let m2 = parse_material(m)?;
+                    prefiltered.insert(m.clone(), Prefiltered::build(&m2, &prefilter_cfg));
+                    c.material_spec = m.clone();
+                    // No longer a library material: no index, no colour shift.
+                    c.material = None;
+                    c.colour_shift = None;
+                    *mat = m2;
+                }
+                let pf2 = &prefiltered[&c.material_spec];
                 c.psi_deg = r.psi_deg;
-                c.geometry_spec = format!("{} (heights × {:.3})", c.geometry_spec, r.scale);
-                *e_design = eye.error(&look, &hf2, pf, c.psi_deg, &opt);
-                *e_made = eye.error(&look, &rep2.made, pf, c.psi_deg, &opt);
+                c.geometry_spec = format!(
+                    "{} (heights × {:.3})",
+                    r.geometry_spec.as_deref().unwrap_or(&c.geometry_spec),
+                    r.scale
+                );
+                *e_design = eye.error(&look, &hf2, pf2, c.psi_deg, &opt);
+                *e_made = eye.error(&look, &rep2.made, pf2, c.psi_deg, &opt);
                 *score = *e_made + scene.cost_weight * rep2.cost.total;
                 *hf = hf2;
                 *rep = rep2;
             }
         }
         refined_by_spec.insert(c.geometry_spec.clone(), r);
-        let _ = mat;
     }
     if scene.refine > 0 && !ranked.is_empty() {
         ranked.sort_by(|a, b| a.0.total_cmp(&b.0));
         note(
             format!(
-                "refinement (NLopt COBYLA, amplitude and rotation): {} in {:.1} s: {}",
+                "refinement (NLopt COBYLA: relief, rotation, shape and free material parameters): {} in {:.1} s: {}",
                 refined_by_spec.len(),
                 t2.elapsed().as_secs_f64(),
                 refined_by_spec

@@ -80,8 +80,9 @@ pub struct Scene {
     pub decimate_max_error_mm: Option<f64>,
     #[serde(default)]
     pub triangle_budget: Option<usize>,
-    /// Refine this many of the best details continuously (amplitude and rotation, NLopt COBYLA,
-    /// the profile's limits as constraints); 0 turns refinement off.
+    /// Refine this many of the best details continuously (relief amplitude, rotation, the
+    /// generator's shape parameters, and the material's parameters when it is not fixed; NLopt
+    /// COBYLA, the profile's limits as constraints); 0 turns refinement off.
     #[serde(default = "one_usize")]
     pub refine: usize,
     /// Objective evaluations per refined detail (each simulates the tool and builds a quick BVNDF).

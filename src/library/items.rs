@@ -116,8 +116,7 @@ fn draw(
                 v.round()
             } else {
                 // Four significant digits keep names readable and specs exact.
-                let m = 10f64.powi(3 - v.abs().max(1e-300).log10().floor() as i32);
-                (v * m).round() / m
+                crate::material::round_sig4(v)
             };
             (k.clone(), v)
         })

@@ -161,6 +161,85 @@ fn looks_like_path(term: &str) -> bool {
     term.ends_with(".binary") || term.contains('/') || term.contains('\\')
 }
 
+/// Keys whose value is a fraction in `[0, 1]`; the other numeric keys are positive scales.
+const FRACTION_KEYS: [&str; 2] = ["f0", "albedo"];
+
+/// The numeric parameters of the analytic terms of `spec`, in order: `(term, key, value)`, the
+/// continuous handles refinement may turn (MERL terms and colours have none).
+pub fn spec_params(spec: &str) -> Vec<(usize, String, f64)> {
+    let mut out = Vec::new();
+    for (t, term) in split_terms(spec).into_iter().enumerate() {
+        let term = term.trim();
+        if looks_like_path(term) {
+            continue;
+        }
+        let Ok(p) = Params::parse(term) else { continue };
+        for (k, v) in p.pairs {
+            if k == "rgb" {
+                continue;
+            }
+            if let Ok(x) = v.parse::<f64>() {
+                out.push((t, k.to_string(), x));
+            }
+        }
+    }
+    out
+}
+
+/// `spec` with parameter `i` of [`spec_params`] multiplied by `factors[i]` (fractions clamped to
+/// 1), written with four significant digits. Parse the result to validate it.
+pub fn spec_scaled(spec: &str, factors: &[f64]) -> String {
+    let params = spec_params(spec);
+    let mut terms: Vec<String> = split_terms(spec)
+        .iter()
+        .map(|t| t.trim().to_string())
+        .collect();
+    for (t, term) in terms.iter_mut().enumerate() {
+        let mine: Vec<(usize, &(usize, String, f64))> = params
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| p.0 == t)
+            .collect();
+        if mine.is_empty() {
+            continue;
+        }
+        let Ok(p) = Params::parse(term) else { continue };
+        let pairs: Vec<String> = p
+            .pairs
+            .iter()
+            .map(|(k, v)| match mine.iter().find(|(_, q)| q.1 == *k) {
+                Some((i, q)) => format!(
+                    "{k}={}",
+                    param_scaled(k, q.2, factors.get(*i).copied().unwrap_or(1.0))
+                ),
+                None => format!("{k}={v}"),
+            })
+            .collect();
+        *term = format!("{}:{}", p.model, pairs.join(","));
+    }
+    terms.join("+")
+}
+
+/// Parameter `key` of value `v` multiplied by `factor`, as [`spec_scaled`] writes it: four
+/// significant digits, fractions (`f0`, `albedo`) clamped to 1.
+pub fn param_scaled(key: &str, v: f64, factor: f64) -> f64 {
+    let x = round_sig4(v * factor);
+    if FRACTION_KEYS.contains(&key) {
+        x.min(1.0)
+    } else {
+        x
+    }
+}
+
+/// `x` rounded to four significant digits: spec values that stay readable and print exactly.
+pub(crate) fn round_sig4(x: f64) -> f64 {
+    if x == 0.0 || !x.is_finite() {
+        return x;
+    }
+    let m = 10f64.powi(3 - x.abs().log10().floor() as i32);
+    (x * m).round() / m
+}
+
 /// Parse a material spec (see [`MATERIAL_GRAMMAR`]).
 pub fn parse_material(spec: &str) -> Result<Material> {
     let ctx = |e: Error| e.within(format!("material '{spec}'"));
@@ -257,6 +336,26 @@ pub fn parse_material(spec: &str) -> Result<Material> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn spec_params_scale_and_reparse() {
+        let spec = "ggx:alpha=0.2684,f0=0.4571,rgb=1:0.5:0.25+lambert:albedo=0.8";
+        let p = spec_params(spec);
+        let keys: Vec<(usize, &str)> = p.iter().map(|(t, k, _)| (*t, k.as_str())).collect();
+        assert_eq!(keys, [(0, "alpha"), (0, "f0"), (1, "albedo")]);
+        assert_eq!(p[0].2, 0.2684);
+        // Unit factors give back the same material; fractions are clamped to 1.
+        let same = spec_scaled(spec, &[1.0, 1.0, 1.0]);
+        assert_eq!(
+            parse_material(&same).unwrap().spec(),
+            parse_material(spec).unwrap().spec()
+        );
+        let s = spec_scaled(spec, &[0.5, 3.0, 2.0]);
+        assert_eq!(s, "ggx:alpha=0.1342,f0=1,rgb=1:0.5:0.25+lambert:albedo=1");
+        parse_material(&s).unwrap();
+        assert_eq!(round_sig4(0.000123456), 0.0001235);
+        assert_eq!(round_sig4(0.0), 0.0);
+    }
 
     #[test]
     fn parses_the_documented_examples() {
