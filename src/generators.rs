@@ -174,7 +174,7 @@ static GENS: &[GenDef] = &[
         help: "random grooves along y whose facet slopes along x are exactly Gaussian (a brushed or sanded \
                finish: it widens a lobe along x by that slope spread); keys: n=128, slope=0.2 (RMS slope along x), \
                slope_y=0 (RMS slope of an independent profile along y; > 0 spreads both ways), kmin=2, kmax=12 \
-               (band of the random profile, cycles per patch; kmax at most n/4), seed=0",
+               (band of the random profile, cycles per patch; kmax at most n/2), seed=0",
         params: &[
             N,
             p("slope", 0.2, Rule::Range(0.0, 10.0)),
@@ -548,13 +548,10 @@ impl Generator {
                 if k0 > k1 {
                     return cross("kmin", format!("kmin {k0} must be at most kmax {k1}"));
                 }
-                if k1 > n / 4.0 {
+                if k1 > n / 2.0 {
                     return cross(
                         "kmax",
-                        format!(
-                            "kmax {k1} exceeds n/4 = {} (the shortest wavelength needs 4 samples)",
-                            n / 4.0
-                        ),
+                        format!("kmax {k1} exceeds n/2 = {} (Nyquist)", n / 2.0),
                     );
                 }
             }
@@ -1146,7 +1143,7 @@ mod tests {
         let rms_y = (sy.iter().map(|v| v * v).sum::<f64>() / n as f64).sqrt();
         assert!((rms_y - 0.1).abs() < 1e-12, "RMS slope along y {rms_y}");
         for bad in [
-            "brushed:n=64,kmax=17",
+            "brushed:n=64,kmax=33",
             "brushed:kmin=5,kmax=4",
             "brushed:slope=-1",
         ] {
