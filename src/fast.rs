@@ -18,10 +18,7 @@ pub fn fbar_one<G: LobeSource + ?Sized>(
     scratch: &mut Vec<(f64, Vmf)>,
 ) -> f64 {
     geo.lobes(p.wi, p.wo, scratch);
-    let mut s = 0.0;
-    for (w, lobe) in scratch.iter() {
-        s += w * mat.eval(p.wi, p.wo, lobe);
-    }
+    let s = mat.eval_sum(p.wi, p.wo, scratch);
     if s.is_finite() && s > 0.0 {
         s
     } else {
@@ -67,7 +64,7 @@ impl FixedLobes {
             .iter()
             .zip(&self.lobes)
             .map(|(p, lobes)| {
-                let s: f64 = lobes.iter().map(|(w, l)| w * mat.eval(p.wi, p.wo, l)).sum();
+                let s = mat.eval_sum(p.wi, p.wo, lobes);
                 if s.is_finite() && s > 0.0 {
                     s
                 } else {

@@ -524,6 +524,18 @@ fn times_left_t(
 /// values it doubles (restarting) until `max_rank`, after which `max_rank` is kept and
 /// `kept_energy` says honestly how much that is. Each attempt makes `2 + 2 power_iters` passes.
 pub fn rsvd_streaming(b: &dyn BlockSource, cfg: &RsvdConfig, want_u: bool) -> Result<Compressed> {
+    rsvd_streaming_with(b, cfg, want_u, &|_| {})
+}
+
+/// [`rsvd_streaming`], calling `on_pass` after every pass over `B` with a line saying where it
+/// is: the attempt, the pass of that attempt, the sketch width, the mean time per pass and the
+/// time left in the attempt (a pass over a large matrix takes minutes).
+pub fn rsvd_streaming_with(
+    b: &dyn BlockSource,
+    cfg: &RsvdConfig,
+    want_u: bool,
+    on_pass: &dyn Fn(&str),
+) -> Result<Compressed> {
     const CTX: &str = "rsvd_streaming";
     let (m, n) = check_shape(CTX, b)?;
     check_energy(CTX, cfg.energy)?;
@@ -544,8 +556,21 @@ pub fn rsvd_streaming(b: &dyn BlockSource, cfg: &RsvdConfig, want_u: bool) -> Re
         cfg.initial_rank
     });
     let mut passes = 0;
+    let per_attempt = 2 + 2 * cfg.power_iters;
+    let mut attempt = 0;
     loop {
         let l = (guess + cfg.oversample).min(full);
+        attempt += 1;
+        let started = std::time::Instant::now();
+        let mut in_attempt = 0;
+        let mut tick = || {
+            in_attempt += 1;
+            let per = started.elapsed().as_secs_f64() / in_attempt as f64;
+            on_pass(&format!(
+                "attempt {attempt}, pass {in_attempt}/{per_attempt} (sketch of {l} columns), {per:.1} s per pass, {:.0} s left in this attempt",
+                per * (per_attempt - in_attempt) as f64
+            ));
+        };
         let chunks = ranges(n, cfg.chunk);
         let mut omega = Mat::<f64>::zeros(n, l);
         for (k, cols) in chunks.iter().enumerate() {
@@ -558,6 +583,7 @@ pub fn rsvd_streaming(b: &dyn BlockSource, cfg: &RsvdConfig, want_u: bool) -> Re
         }
         let (y, total) = times_right(CTX, b, omega.as_ref(), cfg.chunk)?;
         passes += 1;
+        tick();
         if total <= 0.0 {
             return Err(err(
                 CTX,
@@ -567,11 +593,14 @@ pub fn rsvd_streaming(b: &dyn BlockSource, cfg: &RsvdConfig, want_u: bool) -> Re
         let mut q = orthonormalize(y);
         for _ in 0..cfg.power_iters {
             let z = orthonormalize(times_left_t(CTX, b, q.as_ref(), cfg.chunk)?);
+            tick();
             q = orthonormalize(times_right(CTX, b, z.as_ref(), cfg.chunk)?.0);
+            tick();
             passes += 2;
         }
         let ct = times_left_t(CTX, b, q.as_ref(), cfg.chunk)?; // n × l = C^T
         passes += 1;
+        tick();
         // C^T = W S Uhat^T, so C = Uhat S W^T: right singular vectors of B ~ W, left ~ Q Uhat.
         let (mut w, s, mut uhat) = thin_svd(CTX, ct.as_ref())?;
         let trusted = if l == full { l } else { guess };
@@ -983,9 +1012,20 @@ mod tests {
         assert!(c.kept_energy >= cfg.energy);
         assert_eq!(c.passes, 2 + 2 * cfg.power_iters);
         assert!(orthonormality_error(c.u.as_ref().unwrap().as_ref()) < 1e-12);
-        // Run to run and across thread counts: bit-identical.
-        let again = rsvd_streaming(&b, &cfg, true).unwrap();
+        // Run to run and across thread counts: bit-identical; the pass reports change nothing.
+        let lines = std::sync::Mutex::new(Vec::new());
+        let again = rsvd_streaming_with(&b, &cfg, true, &|m| {
+            lines.lock().unwrap().push(m.to_string())
+        })
+        .unwrap();
         assert_eq!(bits(&c), bits(&again));
+        let lines = lines.into_inner().unwrap();
+        assert_eq!(lines.len(), c.passes, "{lines:?}");
+        assert!(
+            lines[0].starts_with("attempt 1, pass 1/6 (sketch of 74 columns)"),
+            "{}",
+            lines[0]
+        );
         let pool = |t| {
             rayon::ThreadPoolBuilder::new()
                 .num_threads(t)

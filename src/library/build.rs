@@ -23,7 +23,7 @@ use crate::error::{Error, Result};
 use crate::gamma::GammaLayout;
 use crate::generators::parse_generator;
 use crate::lightlobes::record_len;
-use crate::lowrank::{cx, rsvd_streaming, svd_gram, BlockSource, CxMethod, RsvdConfig};
+use crate::lowrank::{cx, rsvd_streaming_with, svd_gram, BlockSource, CxMethod, RsvdConfig};
 use crate::material::parse_material;
 use crate::prefilter::{PrefilterConfig, Prefiltered};
 use crate::store::{f32_bytes, write_array, ArrayFile, ArrayWriter, Dtype, Expect};
@@ -594,7 +594,7 @@ fn compress(
     let comp = if gram {
         svd_gram(&b, c.material_energy, 4096, false)?
     } else {
-        rsvd_streaming(
+        rsvd_streaming_with(
             &b,
             &RsvdConfig {
                 energy: c.geometry_energy,
@@ -606,6 +606,7 @@ fn compress(
                 initial_rank: c.initial_rank,
             },
             false,
+            &|msg| stages.step(msg),
         )?
     };
     let svd_seconds = t.elapsed().as_secs_f64();

@@ -189,6 +189,26 @@ impl Stages {
         }
     }
 
+    /// Report how far the current stage has got (`msg`): a plain line, or the spinner's
+    /// message on a terminal.
+    pub fn step(&self, msg: &str) {
+        let stage = self.current.lock().ok().and_then(|c| {
+            c.as_ref()
+                .map(|(m, t)| (m.clone(), t.elapsed().as_secs_f64()))
+        });
+        let Some((stage, secs)) = stage else { return };
+        let line = format!(
+            "{}: {stage}: {msg} (elapsed {})",
+            self.prefix,
+            fmt_secs(secs)
+        );
+        match &self.kind {
+            StagesKind::Hidden => {}
+            StagesKind::Term(b) => b.set_message(line),
+            StagesKind::Plain(sink) => sink.line(line),
+        }
+    }
+
     /// End the current stage and remove the spinner.
     pub fn finish(&self) {
         self.end_current();
@@ -309,15 +329,22 @@ mod tests {
             kind: StagesKind::Plain(sink),
             current: Mutex::new(None),
         };
+        s.step("before any stage: not printed");
         s.stage("material SVD");
+        s.step("pass 1/6");
         s.stage("CX");
         s.finish();
         let lines = lines.lock().unwrap();
-        assert_eq!(lines.len(), 4, "{lines:?}");
+        assert_eq!(lines.len(), 5, "{lines:?}");
         assert_eq!(lines[0], "merge: material SVD ...");
-        assert!(lines[1].starts_with("merge: material SVD: done in "));
-        assert_eq!(lines[2], "merge: CX ...");
-        assert!(lines[3].starts_with("merge: CX: done in "));
+        assert!(
+            lines[1].starts_with("merge: material SVD: pass 1/6 (elapsed "),
+            "{}",
+            lines[1]
+        );
+        assert!(lines[2].starts_with("merge: material SVD: done in "));
+        assert_eq!(lines[3], "merge: CX ...");
+        assert!(lines[4].starts_with("merge: CX: done in "));
         let q = Progress { quiet: true };
         assert!(matches!(q.bar(10, "x").0, BarKind::Hidden));
         assert!(matches!(q.stages("merge").kind, StagesKind::Hidden));
