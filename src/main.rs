@@ -109,9 +109,9 @@ enum Cmd {
         /// Candidates returned.
         #[arg(long, short = 'k', default_value_t = 5)]
         k: usize,
-        /// Items re-ranked with their own library data.
-        #[arg(long, default_value_t = 64)]
-        pool: usize,
+        /// Items re-ranked with their own library data [default: one per 40 library items, 64 to 1024]
+        #[arg(long)]
+        pool: Option<usize>,
         /// General solver: starts and iterations per start.
         #[arg(long, default_value_t = 5)]
         starts: usize,
@@ -166,8 +166,9 @@ enum Cmd {
         seed: u64,
         #[arg(long, default_value_t = 1)]
         psi: usize,
-        #[arg(long, default_value_t = 64)]
-        pool: usize,
+        /// Items re-ranked with their own library data [default: one per 40 library items, 64 to 1024]
+        #[arg(long)]
+        pool: Option<usize>,
         #[arg(long, default_value_t = 3)]
         k: usize,
         #[arg(long, default_value_t = 3)]
@@ -419,7 +420,7 @@ fn main() -> ExitCode {
                     fix_geometry,
                     options: SolveOptions {
                         k: k.max(1),
-                        pool: pool.max(1),
+                        pool: pool.map_or(0, |p| p.max(1)),
                         psi: psi.max(1),
                         beta,
                         final_eval: match final_eval {
@@ -476,7 +477,7 @@ fn main() -> ExitCode {
                             seed,
                             options: biscale::solve::SolveOptions {
                                 psi: psi.max(1),
-                                pool: pool.max(1),
+                                pool: pool.map_or(0, |p| p.max(1)),
                                 k: k.max(1),
                                 final_eval: biscale::solve::Final::Fast,
                                 ..Default::default()

@@ -334,7 +334,7 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
         job.cases,
         job.seed,
         opt.psi,
-        opt.pool,
+        opt.pool_for(ng),
         opt.k,
         job.general.starts
     );

@@ -165,7 +165,8 @@ pub fn run(job: &DesignJob) -> Result<String> {
         k: scene.candidates,
         // The pool counts (geometry, rotation) pairs; the solver keeps each geometry once, so
         // `candidates` different geometries need up to `candidates × psi` pairs.
-        pool: (scene.candidates * scene.psi.max(1)).max(64),
+        pool: (scene.candidates * scene.psi.max(1))
+            .max(crate::solve::auto_pool(lib.manifest.geometries)),
         psi: scene.psi,
         // The fabrication stage evaluates the designed and the made surface of every feasible
         // candidate with the fast evaluator; a third solver stage would repeat that.

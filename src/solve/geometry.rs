@@ -108,7 +108,8 @@ pub fn solve(
         .collect();
     // Stage 1: representatives' `fbar` × X for every geometry and rotation (Eq. 12).
     let mut scored: Vec<(f64, usize, usize)> = Vec::new();
-    let rescore = rescore_share(rots.len(), opt.pool.max(opt.k));
+    let pool_size = opt.pool_for(items.len());
+    let rescore = rescore_share(rots.len(), pool_size);
     for (ri, r) in rots.iter().enumerate() {
         let a: Vec<Vec<f64>> = reps
             .par_iter()
@@ -121,7 +122,7 @@ pub fn solve(
     stats.representatives = reps.len();
     stats.search_seconds = t0.elapsed().as_secs_f64();
     let errs: Vec<f64> = scored.iter().map(|s| s.0).collect();
-    let pool = smallest(&errs, opt.pool.max(opt.k));
+    let pool = smallest(&errs, pool_size);
     // Stage 2: each pooled geometry's own data.
     let t1 = Instant::now();
     let mut reranked: Vec<(f64, f64, usize, usize)> = pool

@@ -125,7 +125,7 @@ pub fn solve(
     // Since the material CX weights are fitted per material (tables scaled to unit norm), the
     // search ranks well enough that re-ranking `pool` materials finds what re-ranking four
     // times as many did (`biscale validate`, material rows: the same 90 % in 0.042 s, not 0.090 s).
-    let pool = smallest(&scores, opt.pool.max(opt.k));
+    let pool = smallest(&scores, opt.pool_for(items.len()));
     let mut reranked: Vec<(f64, f64, usize)> = pool
         .par_iter()
         .map(|&m| {
@@ -207,7 +207,7 @@ pub fn closest_on_flat_patch(
     let flat = Heightfield::flat(16, 16);
     let o = SolveOptions {
         k: n.max(1),
-        pool: opt.pool.max(n),
+        pool: opt.pool_for(lib.manifest.materials).max(n),
         final_eval: Final::Library,
         ..opt.clone()
     };
