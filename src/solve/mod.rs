@@ -395,6 +395,22 @@ mod tests {
     use crate::frame::Vec3;
 
     #[test]
+    fn the_automatic_pool_grows_with_the_library_and_an_asked_pool_wins() {
+        assert_eq!(auto_pool(29), 64);
+        assert_eq!(auto_pool(800), 64);
+        assert_eq!(auto_pool(10_277), 256);
+        assert_eq!(auto_pool(164_431), 1024);
+        let auto = SolveOptions::default();
+        assert_eq!(auto.pool_for(10_277), 256);
+        let asked = SolveOptions {
+            pool: 16,
+            k: 20,
+            ..Default::default()
+        };
+        assert_eq!(asked.pool_for(10_277), 20, "never below k");
+    }
+
+    #[test]
     fn smallest_keeps_the_n_best_in_order_with_ties_by_index() {
         let e = [0.5, f64::NAN, 0.1, 0.3, 0.1, f64::INFINITY, 0.2, 0.3];
         assert_eq!(smallest(&e, 3), vec![2, 4, 6]);
