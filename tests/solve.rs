@@ -321,18 +321,7 @@ fn general_solver_answers_are_distinct_combinations() {
     // Bumps and dimples: nearly the same look at every rotation, so each pair is found at several.
     for j in [10, 11, 13] {
         let look = combo(&lib, j, 2);
-        let opt = SolveOptions {
-            k: 6,
-            pool: 16,
-            psi: 4,
-            final_eval: Final::Fast,
-            ..Default::default()
-        };
-        let g = biscale::solve::general::GeneralOptions {
-            starts: 2,
-            max_iterations: 2,
-            ..Default::default()
-        };
+        let (opt, g) = small_general(6, 16, 4, 2);
         let r = biscale::solve::general::solve(&lib, &look, &opt, &g).unwrap();
         assert!(!r.candidates.is_empty());
         let pairs: std::collections::BTreeSet<_> = r
@@ -351,18 +340,7 @@ fn general_solver_answers_are_distinct_combinations() {
 fn veds_are_within_the_bound_and_never_the_same_pair() {
     let lib = Library::open(&tiny_library()).unwrap();
     let look = combo(&lib, 10, 9);
-    let opt = SolveOptions {
-        k: 3,
-        pool: 8,
-        psi: 2,
-        final_eval: Final::Fast,
-        ..Default::default()
-    };
-    let g = biscale::solve::general::GeneralOptions {
-        starts: 3,
-        max_iterations: 2,
-        ..Default::default()
-    };
+    let (opt, g) = small_general(3, 8, 2, 3);
     let bound = 0.5;
     let r = biscale::solve::veds::solve(&lib, &look, &opt, &g, 5, bound, 0.98).unwrap();
     let c = &r.candidates;
@@ -443,4 +421,28 @@ fn design_refines_shape_and_free_material_parameters() {
         biscale::generators::parse_generator(g).unwrap();
     }
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Options for a quick general solve on the tiny library: `k` answers, a `pool`, `psi`
+/// rotations, `starts` starts of two iterations, fast final evaluation.
+fn small_general(
+    k: usize,
+    pool: usize,
+    psi: usize,
+    starts: usize,
+) -> (SolveOptions, biscale::solve::general::GeneralOptions) {
+    (
+        SolveOptions {
+            k,
+            pool,
+            psi,
+            final_eval: Final::Fast,
+            ..Default::default()
+        },
+        biscale::solve::general::GeneralOptions {
+            starts,
+            max_iterations: 2,
+            ..Default::default()
+        },
+    )
 }
