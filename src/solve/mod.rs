@@ -36,7 +36,7 @@ use serde::Serialize;
 pub use look::Look;
 
 /// The automatic pool of a library of `items`: one per 40 items, from 64 to 1024. 64 was tuned on
-/// the 800-geometry `default` library; on the 10,277-geometry `paper16` a pool of 256 took the
+/// the 800-geometry `default` library; on the 10,277-geometry `paper16` (20 cases) a pool of 256 took the
 /// geometry solver from 85 % to 95 % within 7 % (its exhaustive scan: 100 %; `docs/solvers.md`).
 pub fn auto_pool(items: usize) -> usize {
     (items / 40).clamp(64, 1024)
