@@ -139,25 +139,12 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
         "{t}"
     );
 
-    let out = std::env::temp_dir().join(format!("biscale-design-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
-    let scene = out.join("scene.toml");
-    std::fs::create_dir_all(&out).unwrap();
-    std::fs::write(
-        &scene,
+    let (out, job) = design_job(
+        "design",
+        &dir,
         "name = \"t1\"\ntarget = \"ward:alpha=0.2\"\nfixed_material = \"ggx:alpha=0.2,f0=0.9\"\n\
-         profile = \"cnc-ball1-aluminium\"\ntile_mm = [20.0, 20.0]\nviewing_distance_mm = 100000.0\n\
-         details = 1\ncandidates = 4\npsi = 1\nlibrary_profile = \"tiny\"\ndecimate_max_error_mm = 0.01\n",
-    )
-    .unwrap();
-    let job = biscale::design::DesignJob {
-        scene: Some(scene.clone()),
-        outputs: out.clone(),
-        force: false,
-        library: Some(dir.clone()),
-        cache_dir: None,
-        quiet: true,
-    };
+         decimate_max_error_mm = 0.01\n",
+    );
     let text = biscale::design::run(&job).unwrap();
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("t1/summary.json")).unwrap()).unwrap();
@@ -376,26 +363,11 @@ fn veds_are_within_the_bound_and_never_the_same_pair() {
 /// generator's shape parameters; what it reports parses back, and it never makes the detail worse.
 #[test]
 fn design_refines_shape_and_free_material_parameters() {
-    let dir = tiny_library();
-    let out = std::env::temp_dir().join(format!("biscale-refine-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
-    std::fs::create_dir_all(&out).unwrap();
-    let scene = out.join("scene.toml");
-    std::fs::write(
-        &scene,
-        "name = \"t2\"\ntarget = \"blinn:n=40+lambert:albedo=0.25\"\n\
-         profile = \"cnc-ball1-aluminium\"\ntile_mm = [20.0, 20.0]\nviewing_distance_mm = 100000.0\n\
-         details = 1\ncandidates = 4\npsi = 1\nlibrary_profile = \"tiny\"\nrefine_evaluations = 12\n",
-    )
-    .unwrap();
-    let job = biscale::design::DesignJob {
-        scene: Some(scene),
-        outputs: out.clone(),
-        force: false,
-        library: Some(dir.clone()),
-        cache_dir: None,
-        quiet: true,
-    };
+    let (out, job) = design_job(
+        "refine",
+        &tiny_library(),
+        "name = \"t2\"\ntarget = \"blinn:n=40+lambert:albedo=0.25\"\nrefine_evaluations = 12\n",
+    );
     let text = biscale::design::run(&job).unwrap();
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("t2/summary.json")).unwrap()).unwrap();
@@ -445,4 +417,36 @@ fn small_general(
             ..Default::default()
         },
     )
+}
+
+/// A design job in a fresh temporary directory `biscale-TAG-PID` on the tiny library `lib`: the
+/// scene is `scene` (its name, target and extra keys) plus a 1 mm ball-nose, a 20 mm tile seen
+/// from 100 m, one detail of four candidates and one rotation.
+fn design_job(
+    tag: &str,
+    lib: &std::path::Path,
+    scene: &str,
+) -> (PathBuf, biscale::design::DesignJob) {
+    let out = std::env::temp_dir().join(format!("biscale-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    std::fs::create_dir_all(&out).unwrap();
+    let path = out.join("scene.toml");
+    std::fs::write(
+        &path,
+        format!(
+            "{scene}profile = \"cnc-ball1-aluminium\"\ntile_mm = [20.0, 20.0]\n\
+             viewing_distance_mm = 100000.0\ndetails = 1\ncandidates = 4\npsi = 1\n\
+             library_profile = \"tiny\"\n"
+        ),
+    )
+    .unwrap();
+    let job = biscale::design::DesignJob {
+        scene: Some(path),
+        outputs: out.clone(),
+        force: false,
+        library: Some(lib.to_path_buf()),
+        cache_dir: None,
+        quiet: true,
+    };
+    (out, job)
 }
