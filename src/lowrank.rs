@@ -292,6 +292,24 @@ fn coords_of(s: &[f64], v: MatRef<'_, f64>, r: usize) -> Mat<f64> {
     Mat::from_fn(r, v.nrows(), |i, j| s[i] * v[(j, i)])
 }
 
+/// An orthonormal basis (`n × d`, columns) of the row space of `b` (`m × n`): the leading right
+/// singular vectors whose squared singular values hold `energy` of `||b||_F^2`. Projecting a
+/// combination of `b`'s rows on it loses at most `1 - energy` of the rows' energy overall, so
+/// scans over many such combinations run in `d` instead of `n` dimensions. An all-zero `b` gives
+/// an error.
+pub fn row_basis(b: Mat<f64>, energy: f64) -> Result<Mat<f64>> {
+    let m = b.nrows().max(1);
+    let c = svd_gram(&InMemory(b), energy, m, false)?;
+    Ok(Mat::from_fn(c.coords.ncols(), c.rank, |i, j| {
+        let s = c.singular[j];
+        if s > 0.0 {
+            c.coords[(j, i)] / s
+        } else {
+            0.0
+        }
+    }))
+}
+
 /// In-core SVD through the Gram matrix `G = B^T B` (`n × n`), for matrices with few columns
 /// (material library: `m ~ 300k`, `n <= ~5000`). `B` is read in blocks of `row_block` rows; `G`
 /// is accumulated block after block, its column tiles updated in parallel. `sigma = sqrt(eig(G))`;

@@ -184,6 +184,18 @@ impl GeometryLobes {
     }
 }
 
+/// The value in `cell`, made by `make` on first use (a failure is returned, not cached).
+fn cached<T>(
+    cell: &std::sync::OnceLock<Arc<T>>,
+    make: impl FnOnce() -> Result<T>,
+) -> Result<Arc<T>> {
+    if let Some(v) = cell.get() {
+        return Ok(v.clone());
+    }
+    let v = Arc::new(make()?);
+    Ok(cell.get_or_init(|| v).clone())
+}
+
 /// Arrays at most this large are checksummed whenever a run opens them.
 pub const VERIFY_BYTES: usize = 128 << 20;
 
@@ -194,6 +206,9 @@ pub struct Library {
     pub profile: LibraryProfile,
     arrays: Mutex<BTreeMap<String, Arc<ArrayFile>>>,
     reads: Mutex<Vec<String>>,
+    /// The item lists, parsed on first use.
+    geometry_items: std::sync::OnceLock<Arc<Vec<GeometryItem>>>,
+    material_items: std::sync::OnceLock<Arc<Vec<MaterialItem>>>,
     /// Checksum every array on open, whatever its size (`library verify`).
     pub verify_all_arrays: bool,
 }
@@ -215,6 +230,8 @@ impl Library {
             profile,
             arrays: Mutex::new(BTreeMap::new()),
             reads: Mutex::new(Vec::new()),
+            geometry_items: std::sync::OnceLock::new(),
+            material_items: std::sync::OnceLock::new(),
             verify_all_arrays: false,
         })
     }
@@ -238,13 +255,10 @@ impl Library {
                     format!("lists no file '{rel}'"),
                 )
             })?;
-        let f = ArrayFile::open(
-            &self.dir.join(rel),
-            &Expect {
-                verify: true,
-                ..Default::default()
-            },
-        )?;
+        let mut f = ArrayFile::open(&self.dir.join(rel), &Expect::default())?;
+        if self.verify_all_arrays || f.header.data_bytes() <= VERIFY_BYTES {
+            f.verify()?;
+        }
         if f.header.checksum != entry.checksum {
             return Err(Error::new(
                 f.path.display().to_string(),
@@ -287,12 +301,14 @@ impl Library {
             .map_err(|e| Error::new(p.display().to_string(), format!("corrupted item list: {e}")))
     }
 
-    pub fn geometry_items(&self) -> Result<Vec<GeometryItem>> {
-        self.json("geometry/items.json")
+    /// The geometry items (`geometry/items.json`, read and checked once per opened library).
+    pub fn geometry_items(&self) -> Result<Arc<Vec<GeometryItem>>> {
+        cached(&self.geometry_items, || self.json("geometry/items.json"))
     }
 
-    pub fn material_items(&self) -> Result<Vec<MaterialItem>> {
-        self.json("material/items.json")
+    /// The material items (`material/items.json`, read and checked once per opened library).
+    pub fn material_items(&self) -> Result<Arc<Vec<MaterialItem>>> {
+        cached(&self.material_items, || self.json("material/items.json"))
     }
 
     pub fn gamma_layout(&self) -> GammaLayout {
