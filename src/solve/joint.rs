@@ -15,7 +15,7 @@
 //! `samples` dimensions), so `P_g` for a block is `X_block · R̃` (f32); each geometry's `Q_g` and
 //! `b_g` are then written as one row `V_g = [Q_ac (a <= c), -2 b_a]`, and every material's error
 //! at once is `V · Uᵀ + |t|²` with `U_m = [y_a y_c, y_a]` (f64). On paper16 (10,277 geometries
-//! × 260 materials) this is 6× faster than one loop per geometry (docs/solvers.md, measured).
+//! × 260 materials) this is about 4× faster than one loop per geometry (docs/solvers.md gives the measurement).
 
 use super::{
     material_prefiltered, rotated_samples, smallest, Candidate, Final, Look, SolveOptions,
