@@ -6,7 +6,7 @@
 
 use crate::bvndf::LobeSource;
 use crate::frame::DirPair;
-use crate::prefilter::Prefiltered;
+use crate::prefilter::{prepare, PrefilterConfig, Prefiltered, PreparedLobe};
 use crate::vmf::Vmf;
 
 /// `fbar` at one pair, reusing `scratch` for the lobes.
@@ -40,6 +40,8 @@ pub fn fbar<G: LobeSource + ?Sized>(geo: &G, mat: &Prefiltered, pairs: &[DirPair
 pub struct FixedLobes {
     pairs: Vec<DirPair>,
     lobes: Vec<Vec<(f64, Vmf)>>,
+    /// The lobes with their table coordinates, for the settings of the first table evaluated.
+    prepared: std::sync::OnceLock<(PrefilterConfig, Vec<Vec<PreparedLobe>>)>,
 }
 
 impl FixedLobes {
@@ -55,22 +57,36 @@ impl FixedLobes {
         FixedLobes {
             pairs: pairs.to_vec(),
             lobes,
+            prepared: std::sync::OnceLock::new(),
         }
     }
 
-    /// `fbar` of `mat` at every pair; equal to [`fbar`] on the geometry.
+    /// `fbar` of `mat` at every pair; equal to [`fbar`] on the geometry. The lobes' table
+    /// coordinates are found on the first call and reused by every later table of the same
+    /// settings.
     pub fn fbar(&self, mat: &Prefiltered) -> Vec<f64> {
-        self.pairs
-            .iter()
-            .zip(&self.lobes)
-            .map(|(p, lobes)| {
-                let s = mat.eval_sum(p.wi, p.wo, lobes);
-                if s.is_finite() && s > 0.0 {
-                    s
-                } else {
-                    0.0
-                }
-            })
-            .collect()
+        let (cfg, prepared) = self.prepared.get_or_init(|| {
+            let prep = self
+                .pairs
+                .iter()
+                .zip(&self.lobes)
+                .map(|(p, l)| prepare(&mat.cfg, p.wi, p.wo, l))
+                .collect();
+            (mat.cfg.clone(), prep)
+        });
+        let clean = |s: f64| if s.is_finite() && s > 0.0 { s } else { 0.0 };
+        if *cfg == mat.cfg {
+            self.pairs
+                .iter()
+                .zip(prepared)
+                .map(|(p, l)| clean(mat.eval_prepared(p.wi, p.wo, l)))
+                .collect()
+        } else {
+            self.pairs
+                .iter()
+                .zip(&self.lobes)
+                .map(|(p, l)| clean(mat.eval_sum(p.wi, p.wo, l)))
+                .collect()
+        }
     }
 }

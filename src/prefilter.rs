@@ -58,7 +58,6 @@ pub struct Prefiltered {
     material: Material,
     /// `[i_half][i_kappa][i_theta_mu][i_phi_mu]`.
     pub data: Vec<f32>,
-    lk: Vec<f64>,
     /// `material.min_lobe_width()`, read for every lobe (the point-lobe test).
     min_width: Option<f64>,
 }
@@ -160,7 +159,6 @@ impl Prefiltered {
             cfg: cfg.clone(),
             material: mat.clone(),
             data,
-            lk: KAPPAS.iter().map(|k| k.ln_1p()).collect(),
             min_width: mat.min_lobe_width(),
         }
     }
@@ -183,7 +181,6 @@ impl Prefiltered {
             cfg: cfg.clone(),
             material: mat.clone(),
             data,
-            lk: KAPPAS.iter().map(|k| k.ln_1p()).collect(),
             min_width: mat.min_lobe_width(),
         })
     }
@@ -216,74 +213,170 @@ impl Prefiltered {
         let mut frame = None;
         let mut s = 0.0;
         for (w, lobe) in lobes {
-            if lobe.kappa >= POINT_KAPPA
-                && self
-                    .min_width
-                    .is_none_or(|a| a * a * lobe.kappa >= POINT_KAPPA)
-            {
-                let c = lobe.mu.dot(wi);
-                if c > 0.0 {
-                    s += w * (self.material.eval(lobe.mu, wi, wo) * c);
-                }
-                continue;
-            }
-            let f = *frame.get_or_insert_with(|| half_frame(wi, wo));
-            let Some((x, y, h, th)) = f else {
-                continue;
-            };
-            let mu = Vec3::new(lobe.mu.dot(x), lobe.mu.dot(y).abs(), lobe.mu.dot(h));
-            s += w * self.eval_local(th, lobe.kappa, mu);
+            s += w * self.lobe_value(
+                wi,
+                lobe,
+                || {
+                    let f = *frame.get_or_insert_with(|| half_frame(wi, wo));
+                    f.map(|f| table_coords(&self.cfg, f, lobe))
+                },
+                wo,
+            );
         }
         s
     }
 
+    /// `Σ w F` over lobes whose table coordinates were found once ([`prepare`]) for a table of
+    /// the same settings: equal to [`Self::eval_sum`] on the same lobes, without the per-lobe
+    /// trigonometry. Evaluating many materials on one geometry's lobes (the material solver,
+    /// the joint search) pays for the coordinates once.
+    pub fn eval_prepared(&self, wi: Vec3, wo: Vec3, lobes: &[PreparedLobe]) -> f64 {
+        lobes
+            .iter()
+            .map(|p| p.weight * self.lobe_value(wi, &p.lobe, || p.coords, wo))
+            .sum()
+    }
+
+    /// One lobe's `F`: at its centre when it is a point for this material, else from the table
+    /// at `coords` (none: the pair has no half-vector frame, and the lobe contributes nothing).
+    #[inline]
+    fn lobe_value(
+        &self,
+        wi: Vec3,
+        lobe: &Vmf,
+        coords: impl FnOnce() -> Option<TableCoords>,
+        wo: Vec3,
+    ) -> f64 {
+        if lobe.kappa >= POINT_KAPPA
+            && self
+                .min_width
+                .is_none_or(|a| a * a * lobe.kappa >= POINT_KAPPA)
+        {
+            let c = lobe.mu.dot(wi);
+            return if c > 0.0 {
+                self.material.eval(lobe.mu, wi, wo) * c
+            } else {
+                0.0
+            };
+        }
+        coords().map_or(0.0, |c| self.eval_coords(&c))
+    }
+
     /// Interpolated entry for half angle `th`, `kappa` and unit `mu` in the half-vector frame.
     pub fn eval_local(&self, th: f64, kappa: f64, mu: Vec3) -> f64 {
-        let (nh, nk, nt, np) = (
-            self.cfg.n_half,
-            KAPPAS.len(),
-            self.cfg.n_theta_mu,
-            self.cfg.n_phi_mu,
-        );
-        let fh = (th / FRAC_PI_2 * (nh - 1) as f64).clamp(0.0, (nh - 1) as f64);
-        let lk = kappa.clamp(0.0, KAPPA_MAX).ln_1p();
-        let mut ik = 0;
-        while ik + 2 < nk && lk >= self.lk[ik + 1] {
-            ik += 1;
-        }
-        let fk = ((lk - self.lk[ik]) / (self.lk[ik + 1] - self.lk[ik])).clamp(0.0, 1.0);
-        let tm = mu.z.clamp(-1.0, 1.0).acos();
-        let ft = ((tm / PI).sqrt() * (nt - 1) as f64).clamp(0.0, (nt - 1) as f64);
-        let pm = mu.y.abs().atan2(mu.x);
-        let fp = (pm / PI * (np - 1) as f64).clamp(0.0, (np - 1) as f64);
-        let split = |f: f64, n: usize| {
-            let i = (f.floor() as usize).min(n - 2);
-            (i, f - i as f64)
-        };
-        let (ih, wh) = split(fh, nh);
-        let (it, wt) = split(ft, nt);
-        let (ip, wp) = split(fp, np);
+        self.eval_coords(&local_coords(&self.cfg, th, kappa, mu))
+    }
+
+    /// The multilinear interpolation of the table at `c`.
+    fn eval_coords(&self, c: &TableCoords) -> f64 {
+        let (nk, nt, np) = (KAPPAS.len(), self.cfg.n_theta_mu, self.cfg.n_phi_mu);
         let mut s = 0.0;
-        for (dh, ah) in [(0, 1.0 - wh), (1, wh)] {
+        for (dh, ah) in [(0, 1.0 - c.wh), (1, c.wh)] {
             if ah == 0.0 {
                 continue;
             }
-            for (dk, ak) in [(0, 1.0 - fk), (1, fk)] {
+            for (dk, ak) in [(0, 1.0 - c.wk), (1, c.wk)] {
                 if ak == 0.0 {
                     continue;
                 }
-                let base = ((ih + dh) * nk + ik + dk) * nt;
-                for (dt, at) in [(0, 1.0 - wt), (1, wt)] {
+                let base = ((c.ih + dh) * nk + c.ik + dk) * nt;
+                for (dt, at) in [(0, 1.0 - c.wt), (1, c.wt)] {
                     if at == 0.0 {
                         continue;
                     }
-                    let row = (base + it + dt) * np + ip;
-                    let v = self.data[row] as f64 * (1.0 - wp) + self.data[row + 1] as f64 * wp;
+                    let row = (base + c.it + dt) * np + c.ip;
+                    let v = self.data[row] as f64 * (1.0 - c.wp) + self.data[row + 1] as f64 * c.wp;
                     s += ah * ak * at * v;
                 }
             }
         }
         s
+    }
+}
+
+/// Where a lobe falls in a table of given settings: the lower node and the weight of the upper
+/// one along each axis (half angle, kappa, `θ_mu`, `φ_mu`). It depends on the lobe, the pair
+/// and the settings, not on the material.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TableCoords {
+    ih: usize,
+    ik: usize,
+    it: usize,
+    ip: usize,
+    wh: f64,
+    wk: f64,
+    wt: f64,
+    wp: f64,
+}
+
+/// A weighted lobe of one pair with its table coordinates, ready for many materials.
+#[derive(Debug, Clone, Copy)]
+pub struct PreparedLobe {
+    pub weight: f64,
+    pub lobe: Vmf,
+    coords: Option<TableCoords>,
+}
+
+/// The lobes of pair `(wi, wo)` with their coordinates in tables of settings `cfg`.
+pub fn prepare(
+    cfg: &PrefilterConfig,
+    wi: Vec3,
+    wo: Vec3,
+    lobes: &[(f64, Vmf)],
+) -> Vec<PreparedLobe> {
+    let frame = half_frame(wi, wo);
+    lobes
+        .iter()
+        .map(|&(weight, lobe)| PreparedLobe {
+            weight,
+            lobe,
+            coords: frame.map(|f| table_coords(cfg, f, &lobe)),
+        })
+        .collect()
+}
+
+/// The coordinates of `lobe` in the half-vector frame `f` of its pair.
+fn table_coords(cfg: &PrefilterConfig, f: (Vec3, Vec3, Vec3, f64), lobe: &Vmf) -> TableCoords {
+    let (x, y, h, th) = f;
+    let mu = Vec3::new(lobe.mu.dot(x), lobe.mu.dot(y).abs(), lobe.mu.dot(h));
+    local_coords(cfg, th, lobe.kappa, mu)
+}
+
+/// `ln(1 + kappa)` at the kappa nodes.
+static LN_KAPPAS: std::sync::LazyLock<Vec<f64>> =
+    std::sync::LazyLock::new(|| KAPPAS.iter().map(|k| k.ln_1p()).collect());
+
+/// The coordinates of half angle `th`, `kappa` and unit `mu` (half-vector frame).
+fn local_coords(cfg: &PrefilterConfig, th: f64, kappa: f64, mu: Vec3) -> TableCoords {
+    let (nh, nk, nt, np) = (cfg.n_half, KAPPAS.len(), cfg.n_theta_mu, cfg.n_phi_mu);
+    let lkn = &*LN_KAPPAS;
+    let fh = (th / FRAC_PI_2 * (nh - 1) as f64).clamp(0.0, (nh - 1) as f64);
+    let lk = kappa.clamp(0.0, KAPPA_MAX).ln_1p();
+    let mut ik = 0;
+    while ik + 2 < nk && lk >= lkn[ik + 1] {
+        ik += 1;
+    }
+    let wk = ((lk - lkn[ik]) / (lkn[ik + 1] - lkn[ik])).clamp(0.0, 1.0);
+    let tm = mu.z.clamp(-1.0, 1.0).acos();
+    let ft = ((tm / PI).sqrt() * (nt - 1) as f64).clamp(0.0, (nt - 1) as f64);
+    let pm = mu.y.abs().atan2(mu.x);
+    let fp = (pm / PI * (np - 1) as f64).clamp(0.0, (np - 1) as f64);
+    let split = |f: f64, n: usize| {
+        let i = (f.floor() as usize).min(n - 2);
+        (i, f - i as f64)
+    };
+    let (ih, wh) = split(fh, nh);
+    let (it, wt) = split(ft, nt);
+    let (ip, wp) = split(fp, np);
+    TableCoords {
+        ih,
+        ik,
+        it,
+        ip,
+        wh,
+        wk,
+        wt,
+        wp,
     }
 }
 
@@ -309,5 +402,32 @@ mod tests {
         );
         let f = t.eval(wi, wo, &Vmf::new(KAPPA_MAX, Vec3::Z));
         assert!((f / want - 1.0).abs() < 0.03, "{f} {want}");
+    }
+
+    #[test]
+    fn prepared_lobes_give_the_same_sum_as_eval_sum() {
+        let cfg = PrefilterConfig {
+            n_half: 6,
+            n_theta_mu: 8,
+            n_phi_mu: 5,
+            samples: 8,
+        };
+        let lobes = [
+            (0.5, Vmf::new(3.0, dir_from_deg(20.0, 40.0))),
+            (0.3, Vmf::new(500.0, dir_from_deg(5.0, 200.0))),
+            (0.2, Vmf::new(KAPPA_MAX, Vec3::Z)),
+        ];
+        for spec in ["ggx:alpha=0.02", "blinn:n=60+lambert:albedo=0.2"] {
+            let t = Prefiltered::build(&parse_material(spec).unwrap(), &cfg);
+            for (wi, wo) in [
+                (dir_from_deg(30.0, 0.0), dir_from_deg(50.0, 150.0)),
+                (dir_from_deg(40.0, 10.0), dir_from_deg(40.0, 190.0)),
+                (dir_from_deg(0.0, 0.0), dir_from_deg(0.0, 0.0)),
+            ] {
+                let want = t.eval_sum(wi, wo, &lobes);
+                let got = t.eval_prepared(wi, wo, &prepare(&cfg, wi, wo, &lobes));
+                assert_eq!(got.to_bits(), want.to_bits(), "{spec}");
+            }
+        }
     }
 }

@@ -230,7 +230,7 @@ fn joint_search_finds_the_pair_of_a_library_combination() {
     let mut first = 0;
     for (g, m) in [(2, 1), (ng / 2, nm / 2), (ng - 3, nm - 1)] {
         let look = combo(&lib, g, m);
-        let (scanned, pairs) = biscale::solve::joint::search(
+        let (scanned, pairs, _) = biscale::solve::joint::search(
             &lib,
             &look,
             &opt,
@@ -253,6 +253,53 @@ fn joint_search_finds_the_pair_of_a_library_combination() {
     );
 }
 
+/// The joint search's representative pairs give a library material's values on the geometry
+/// representatives through its CX weights; for a material that is itself a representative
+/// (weights: one 1, the rest 0) they are its own values, evaluated directly.
+#[test]
+fn joint_rep_pairs_reproduce_a_representative_materials_values() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let look = combo(&lib, 2, 1);
+    let opt = SolveOptions {
+        final_eval: Final::Library,
+        psi: 2,
+        ..Default::default()
+    };
+    let (_, _, reps) =
+        biscale::solve::joint::search(&lib, &look, &opt, 8, biscale::solve::joint::MAX_OPERATIONS)
+            .unwrap();
+    assert_eq!(reps.rotations(), 2);
+    let mreps = lib.array("material/representatives.bsa").unwrap();
+    let greps = lib.array("geometry/representatives.bsa").unwrap();
+    let (mreps, greps) = (mreps.u32s().unwrap(), greps.u32s().unwrap());
+    let m = mreps[mreps.len() / 2] as usize;
+    let mi = lib.material_items().unwrap();
+    let pf =
+        biscale::solve::material_prefiltered(&lib, &parse_material(&mi[m].spec).unwrap(), Some(m))
+            .unwrap();
+    let lobes = lib.geometry_lobes().unwrap();
+    let lights = lib.gamma_layout().lights;
+    for ri in 0..2 {
+        let psi = biscale::solve::psi_angle(ri, 2);
+        let (s, _) = biscale::solve::rotated_samples(&look, &lights, psi, &opt.sampling);
+        let pairs = biscale::solve::dir_pairs(&s);
+        let got = reps.values(ri, m).unwrap();
+        for (r, &g) in greps.iter().enumerate() {
+            let want =
+                biscale::fast::FixedLobes::new(&lobes.get(g as usize).unwrap(), &pairs).fbar(&pf);
+            let scale = want.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-12);
+            for (a, b) in got[r].iter().zip(&want) {
+                // CX weights are stored in f32: a unit weight is exact, a zero weight too.
+                assert!(
+                    (a - b).abs() <= 1e-9 * scale,
+                    "rotation {ri} rep {r}: {a} vs {b}"
+                );
+            }
+        }
+    }
+    assert!(reps.values(2, m).is_none() && reps.values(0, mi.len()).is_none());
+}
+
 /// Over its operation budget the joint search pairs every geometry with only the materials
 /// closest to the look on a flat patch (at least `MIN_MATERIALS`), and still returns a sorted
 /// pool of pairs made of those materials.
@@ -270,7 +317,7 @@ fn joint_search_keeps_to_its_budget() {
         final_eval: Final::Library,
         ..Default::default()
     };
-    let (scanned, pairs) = biscale::solve::joint::search(&lib, &look, &opt, 16, 1.0).unwrap();
+    let (scanned, pairs, _) = biscale::solve::joint::search(&lib, &look, &opt, 16, 1.0).unwrap();
     assert_eq!(scanned, ng * few);
     assert!(!pairs.is_empty() && pairs.windows(2).all(|w| w[0].error <= w[1].error));
     let (closest, _) =

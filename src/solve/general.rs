@@ -68,6 +68,9 @@ pub fn explore(
     let mut rng = Rng::new(g.seed);
     let mut seen: Vec<Candidate> = Vec::new();
     let mut stats = SolveStats::default();
+    // The joint search's representative pairs: the geometry solves below read their
+    // representatives' values from them.
+    let mut rep_pairs = None;
     // Starts: the given material; then the materials of the best pairs of the joint search;
     // then the material that best reproduces the look on a flat patch (the material solver on
     // a flat heightfield: the look as a plain BRDF); then seeded random materials.
@@ -79,7 +82,7 @@ pub fn explore(
         .collect();
     if g.joint_pool > 0 {
         let t = Instant::now();
-        let (scanned, pairs) = super::joint::search(
+        let (scanned, pairs, reps) = super::joint::search(
             lib,
             look,
             &inner,
@@ -88,6 +91,7 @@ pub fn explore(
         )?;
         stats.search_seconds += t.elapsed().as_secs_f64();
         stats.items_searched += scanned;
+        rep_pairs = Some(reps);
         let all = lib.manifest.geometries * mats.len() * inner.psi.max(1);
         if scanned < all {
             stats.notes.push(format!(
@@ -126,7 +130,15 @@ pub fn explore(
         for _ in 0..g.max_iterations.max(1) {
             if !geometry_solves.contains_key(&m) {
                 let mat: Material = parse_material(&mats[m].spec)?;
-                let gr = super::geometry::solve(lib, look, &mat, &mats[m].spec, Some(m), &inner)?;
+                let gr = super::geometry::solve_with(
+                    lib,
+                    look,
+                    &mat,
+                    &mats[m].spec,
+                    Some(m),
+                    &inner,
+                    rep_pairs.as_ref(),
+                )?;
                 accumulate(&mut stats, &gr.stats);
                 seen.extend(gr.candidates.iter().cloned());
                 geometry_solves.insert(m, gr.candidates);

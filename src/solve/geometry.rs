@@ -9,6 +9,7 @@
 //! geometries — each once, at its best rotation — evaluated with the fast or exact evaluator. With `rerank_fast = false` both stages use the
 //! binned columns instead (the material's [`Response`]), for comparison.
 
+use super::joint::RepPairs;
 use super::{
     bvndf_of, exact_values, fast_values, library_heightfield, material_prefiltered, psi_angle,
     rescore_share, rotated_samples, search_errors, smallest, Candidate, Final, Look, SolveOptions,
@@ -70,6 +71,29 @@ pub fn solve(
     material_index: Option<usize>,
     opt: &SolveOptions,
 ) -> Result<SolveResult> {
+    solve_with(
+        lib,
+        look,
+        material,
+        material_label,
+        material_index,
+        opt,
+        None,
+    )
+}
+
+/// [`solve`], with the representatives' values taken from a joint search's representative pairs
+/// when the material is a library material and `reps` holds every rotation (stage 1 then
+/// evaluates nothing; stages 2 and 3 use the material's own table as always).
+pub fn solve_with(
+    lib: &Library,
+    look: &Look,
+    material: &Material,
+    material_label: &str,
+    material_index: Option<usize>,
+    opt: &SolveOptions,
+    reps_values: Option<&RepPairs>,
+) -> Result<SolveResult> {
     let mut stats = SolveStats::default();
     let t0 = Instant::now();
     let items = lib.geometry_items()?;
@@ -111,10 +135,19 @@ pub fn solve(
     let pool_size = opt.pool_for(items.len());
     let rescore = rescore_share(rots.len(), pool_size);
     for (ri, r) in rots.iter().enumerate() {
-        let a: Vec<Vec<f64>> = reps
-            .par_iter()
-            .map(|&k| data.values(k as usize, r))
-            .collect::<Result<_>>()?;
+        let prior = match (reps_values, material_index, &data) {
+            (Some(rp), Some(m), ItemData::Lobes { .. }) if rp.rotations() == rots.len() => {
+                rp.values(ri, m)
+            }
+            _ => None,
+        };
+        let a: Vec<Vec<f64>> = match prior {
+            Some(a) => a,
+            None => reps
+                .par_iter()
+                .map(|&k| data.values(k as usize, r))
+                .collect::<Result<_>>()?,
+        };
         let e = search_errors(&r.samples, &r.target, &a, xs, items.len(), rescore);
         scored.extend(e.into_iter().enumerate().map(|(j, e)| (e, j, ri)));
     }

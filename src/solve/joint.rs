@@ -40,6 +40,47 @@ pub struct Pair {
     pub rotation: usize,
 }
 
+/// `fbar(rep_r, rep_s)` of every (geometry representative, material representative) pair at each
+/// rotation's samples, as the joint search computed them. A library material's values on the
+/// geometry representatives follow from its CX weights `y` (Eq. 12 on the material side):
+/// `fbar(rep_r, m) ≈ Σ_s y[s] fbar(rep_r, rep_s)`, so the geometry solves of the alternation
+/// need not evaluate the representatives again.
+pub struct RepPairs {
+    /// `[rotation][r][s][sample]`.
+    rr: Vec<Vec<Vec<Vec<f64>>>>,
+    /// The material library's CX weights, `ks` per material.
+    mx: Vec<f32>,
+    ks: usize,
+}
+
+impl RepPairs {
+    /// Rotations held (the joint search's `psi`).
+    pub fn rotations(&self) -> usize {
+        self.rr.len()
+    }
+
+    /// `fbar(rep_r, material)` at rotation `ri`'s samples, `[r][sample]`; `None` when the
+    /// rotation or the material is not held.
+    pub fn values(&self, ri: usize, material: usize) -> Option<Vec<Vec<f64>>> {
+        let rr = self.rr.get(ri)?;
+        let y = self.mx.get(material * self.ks..(material + 1) * self.ks)?;
+        Some(
+            rr.iter()
+                .map(|per_s| {
+                    let np = per_s.first().map_or(0, Vec::len);
+                    let mut v = vec![0.0; np];
+                    for (row, &ys) in per_s.iter().zip(y) {
+                        for (a, b) in v.iter_mut().zip(row) {
+                            *a += ys as f64 * b;
+                        }
+                    }
+                    v
+                })
+                .collect(),
+        )
+    }
+}
+
 /// Pairs kept per geometry from the compressed scan before the global selection (keeps memory
 /// at `geometries × KEEP_PER_GEOMETRY` whatever the material library's size).
 const KEEP_PER_GEOMETRY: usize = 8;
@@ -63,8 +104,8 @@ pub const MAX_OPERATIONS: f64 = 1e10;
 pub const MIN_MATERIALS: usize = 4;
 
 /// Score every pair through the representatives (stage 1), re-rank the best `pool` pairs with
-/// their own light lobes and prefiltered tables (stage 2). Returns the number of pairs scanned
-/// and the re-ranked pool, best first. When scoring every pair would cost more than
+/// their own light lobes and prefiltered tables (stage 2). Returns the number of pairs scanned,
+/// the re-ranked pool, best first, and the representative pairs' values. When scoring every pair would cost more than
 /// `max_operations` multiply-adds, only the materials that best reproduce the look on a flat
 /// patch (the material solver's ranking) are paired, as many as the budget allows (at least
 /// [`MIN_MATERIALS`]).
@@ -74,7 +115,7 @@ pub fn search(
     opt: &SolveOptions,
     pool: usize,
     max_operations: f64,
-) -> Result<(usize, Vec<Pair>)> {
+) -> Result<(usize, Vec<Pair>, RepPairs)> {
     let gitems = lib.geometry_items()?.len();
     let mitems = lib.material_items()?;
     if gitems == 0 || mitems.is_empty() {
@@ -126,27 +167,24 @@ pub fn search(
         upper_term(y, ks, j)
     });
     let mut kept: Vec<Pair> = Vec::new();
+    let mut rep_pairs = RepPairs {
+        rr: Vec::new(),
+        mx: mx.to_vec(),
+        ks,
+    };
     for (ri, (s, t)) in rots.iter().enumerate() {
         let pairs = super::dir_pairs(s);
         let np = pairs.len();
-        // fbar(rep_r, rep_s) at the samples, weighted: [r][s][p].
+        // fbar(rep_r, rep_s) at the samples: [r][s][p].
         let rr: Vec<Vec<Vec<f64>>> = greps
             .par_iter()
             .map(|&r| {
                 let fixed = FixedLobes::new(&lobes.get(r as usize)?, &pairs);
-                Ok(rep_tables
-                    .iter()
-                    .map(|pf| {
-                        fixed
-                            .fbar(pf)
-                            .iter()
-                            .zip(&s.weights)
-                            .map(|(v, w)| v * w)
-                            .collect()
-                    })
-                    .collect())
+                Ok(rep_tables.iter().map(|pf| fixed.fbar(pf)).collect())
             })
             .collect::<Result<_>>()?;
+        rep_pairs.rr.push(rr);
+        let rr = &rep_pairs.rr[ri];
         let tw: Vec<f64> = t.iter().zip(&s.weights).map(|(t, w)| t * w).collect();
         let n2: f64 = tw.iter().map(|v| v * v).sum();
         if !(n2 > 0.0) {
@@ -155,16 +193,16 @@ pub fn search(
         // Every pair's weighted values are a combination of the kr·ks rows rr[r][s]: project
         // them on their row space's leading basis (d ≪ np dimensions), so the scan below runs
         // in d dimensions. The target's part outside the basis only adds a constant.
-        let rows = Mat::from_fn(kr * ks, np, |i, p| rr[i / ks][i % ks][p]);
+        let rows = Mat::from_fn(kr * ks, np, |i, p| rr[i / ks][i % ks][p] * s.weights[p]);
         let basis = match crate::lowrank::row_basis(rows.clone(), BASIS_ENERGY) {
             Ok(b) => b,
             Err(_) => continue, // every representative is black at these samples
         };
         let d = basis.ncols();
         let reduced = &rows * &basis; // (kr·ks) × d
-        // [r][s·d + k]: representative r's material-representative rows in the basis.
-        // In f32, the CX weights' own precision (twice the f64 rate); an error is about 1e-6 of
-        // |t|², far below the differences the scan ranks by, and stage 2 rescoring is in f64.
+                                      // [r][s·d + k]: representative r's material-representative rows in the basis.
+                                      // In f32, the CX weights' own precision (twice the f64 rate); an error is about 1e-6 of
+                                      // |t|², far below the differences the scan ranks by, and stage 2 rescoring is in f64.
         let rt = Mat::<f32>::from_fn(kr, ks * d, |r, j| reduced[(r * ks + j / d, j % d)] as f32);
         let twr: Vec<f32> = (0..d)
             .map(|k| (0..np).map(|p| basis[(p, k)] * tw[p]).sum::<f64>() as f32)
@@ -221,13 +259,17 @@ pub fn search(
                     for (k, err) in errs.iter_mut().enumerate() {
                         *err = ((n2 + e[(i, k)]).max(0.0) / n2).sqrt();
                     }
-                    out.extend(smallest(&errs, KEEP_PER_GEOMETRY).into_iter().map(|k| Pair {
-                        error: errs[k],
-                        search_error: errs[k],
-                        geometry: g,
-                        material: materials[k],
-                        rotation: ri,
-                    }));
+                    out.extend(
+                        smallest(&errs, KEEP_PER_GEOMETRY)
+                            .into_iter()
+                            .map(|k| Pair {
+                                error: errs[k],
+                                search_error: errs[k],
+                                geometry: g,
+                                material: materials[k],
+                                rotation: ri,
+                            }),
+                    );
                 }
                 out
             })
@@ -292,7 +334,7 @@ pub fn search(
             .then(a.material.cmp(&b.material))
             .then(a.rotation.cmp(&b.rotation))
     });
-    Ok((scanned, reranked))
+    Ok((scanned, reranked, rep_pairs))
 }
 
 /// Entry `j` of a material's row of the scan's quadratic form: the products `y_a y_c` for
