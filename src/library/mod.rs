@@ -206,7 +206,7 @@ pub struct Library {
     pub profile: LibraryProfile,
     arrays: Mutex<BTreeMap<String, Arc<ArrayFile>>>,
     reads: Mutex<Vec<String>>,
-    /// The item lists, parsed on first use.
+    /// The item lists, parsed (and checked against the manifest) on first use.
     geometry_items: std::sync::OnceLock<Arc<Vec<GeometryItem>>>,
     material_items: std::sync::OnceLock<Arc<Vec<MaterialItem>>>,
     /// Checksum every array on open, whatever its size (`library verify`).
@@ -267,8 +267,13 @@ impl Library {
         }
         let f = Arc::new(f);
         if let Ok(mut r) = self.reads.lock() {
+            let unchecked = if f.verified {
+                ""
+            } else {
+                ", mapped without a checksum pass: `biscale library verify` checks it"
+            };
             r.push(format!(
-                "{rel} ({:.1} MB)",
+                "{rel} ({:.1} MB{unchecked})",
                 f.header.data_bytes() as f64 / 1e6
             ));
         }
