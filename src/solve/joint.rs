@@ -15,7 +15,8 @@
 //! `samples` dimensions), so `P_g` for a block is `X_block · R̃` (f32); each geometry's `Q_g` and
 //! `b_g` are then written as one row `V_g = [Q_ac (a <= c), -2 b_a]`, and every material's error
 //! at once is `V · Uᵀ + |t|²` with `U_m = [y_a y_c, y_a]` (f64). On paper16 (10,277 geometries
-//! × 260 materials) this is about 4× faster than one loop per geometry (docs/solvers.md gives the measurement).
+//! × 260 materials) this is about 4× faster than one loop per geometry (docs/solvers.md gives
+//! the measurement).
 
 use super::{
     material_prefiltered, rotated_samples, smallest, Candidate, Final, Look, SolveOptions,
@@ -105,10 +106,10 @@ pub const MIN_MATERIALS: usize = 4;
 
 /// Score every pair through the representatives (stage 1), re-rank the best `pool` pairs with
 /// their own light lobes and prefiltered tables (stage 2). Returns the number of pairs scanned,
-/// the re-ranked pool, best first, and the representative pairs' values. When scoring every pair would cost more than
-/// `max_operations` multiply-adds, only the materials that best reproduce the look on a flat
-/// patch (the material solver's ranking) are paired, as many as the budget allows (at least
-/// [`MIN_MATERIALS`]).
+/// the re-ranked pool, best first, and the representative pairs' values. When scoring every
+/// pair would cost more than `max_operations` multiply-adds, only the materials that best
+/// reproduce the look on a flat patch (the material solver's ranking) are paired, as many as
+/// the budget allows (at least [`MIN_MATERIALS`]).
 pub fn search(
     lib: &Library,
     look: &Look,
@@ -199,10 +200,11 @@ pub fn search(
             Err(_) => continue, // every representative is black at these samples
         };
         let d = basis.ncols();
-        let reduced = &rows * &basis; // (kr·ks) × d
-                                      // [r][s·d + k]: representative r's material-representative rows in the basis.
-                                      // In f32, the CX weights' own precision (twice the f64 rate); an error is about 1e-6 of
-                                      // |t|², far below the differences the scan ranks by, and stage 2 rescoring is in f64.
+        // The rows in the basis, (kr·ks) × d; then [r][s·d + k]: representative r's
+        // material-representative rows. In f32, the CX weights' own precision (twice the f64
+        // rate); an error is about 1e-6 of |t|², far below the differences the scan ranks by,
+        // and stage 2 rescoring is in f64.
+        let reduced = &rows * &basis;
         let rt = Mat::<f32>::from_fn(kr, ks * d, |r, j| reduced[(r * ks + j / d, j % d)] as f32);
         let twr: Vec<f32> = (0..d)
             .map(|k| (0..np).map(|p| basis[(p, k)] * tw[p]).sum::<f64>() as f32)
