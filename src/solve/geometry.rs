@@ -47,6 +47,20 @@ enum ItemData {
 }
 
 impl ItemData {
+    /// `fbar` of library geometry `j` at every rotation's samples (its record read once).
+    fn values_at(&self, j: usize, rots: &[Rotation]) -> Result<Vec<Vec<f64>>> {
+        match self {
+            ItemData::Lobes { lobes, pf } => {
+                let l = lobes.get(j)?;
+                Ok(rots
+                    .iter()
+                    .map(|r| fast_values(&l, pf, &r.samples))
+                    .collect())
+            }
+            ItemData::Binned { .. } => rots.iter().map(|r| self.values(j, r)).collect(),
+        }
+    }
+
     /// `fbar` of library geometry `j` at rotation `r`'s samples.
     fn values(&self, j: usize, r: &Rotation) -> Result<Vec<f64>> {
         match (self, &r.response) {
@@ -134,21 +148,30 @@ pub fn solve_with(
     let mut scored: Vec<(f64, usize, usize)> = Vec::new();
     let pool_size = opt.pool_for(items.len());
     let rescore = rescore_share(rots.len(), pool_size);
-    for (ri, r) in rots.iter().enumerate() {
-        let prior = match (reps_values, material_index, &data) {
-            (Some(rp), Some(m), ItemData::Lobes { .. }) if rp.rotations() == rots.len() => {
-                rp.values(ri, m)
-            }
-            _ => None,
-        };
-        let a: Vec<Vec<f64>> = match prior {
-            Some(a) => a,
-            None => reps
-                .par_iter()
-                .map(|&k| data.values(k as usize, r))
-                .collect::<Result<_>>()?,
-        };
-        let e = search_errors(&r.samples, &r.target, &a, xs, items.len(), rescore);
+    // The representatives' values at every rotation: from the joint search's representative
+    // pairs when given, else evaluated representative by representative, all rotations of one
+    // representative together (its record is read once and stays in cache).
+    let per_rotation: Vec<Vec<Vec<f64>>> = match (reps_values, material_index, &data) {
+        (Some(rp), Some(m), ItemData::Lobes { .. }) if rp.rotations() == rots.len() => (0..rots
+            .len())
+            .map(|ri| rp.values(ri, m))
+            .collect::<Option<_>>()
+            .unwrap_or_default(),
+        _ => Vec::new(),
+    };
+    let per_rotation = if per_rotation.len() == rots.len() {
+        per_rotation
+    } else {
+        let by_rep: Vec<Vec<Vec<f64>>> = reps
+            .par_iter()
+            .map(|&k| data.values_at(k as usize, &rots))
+            .collect::<Result<_>>()?;
+        (0..rots.len())
+            .map(|ri| by_rep.iter().map(|v| v[ri].clone()).collect())
+            .collect()
+    };
+    for ((ri, r), a) in rots.iter().enumerate().zip(&per_rotation) {
+        let e = search_errors(&r.samples, &r.target, a, xs, items.len(), rescore);
         scored.extend(e.into_iter().enumerate().map(|(j, e)| (e, j, ri)));
     }
     stats.items_searched = items.len() * rots.len();
