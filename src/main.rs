@@ -291,6 +291,16 @@ enum BenchCmd {
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
+    /// The fabrication stage: milling simulation and detail check of 128² generators, and
+    /// exports of 50 × 50 mm tiles, with a fabrication profile.
+    Fab {
+        /// Fabrication profile (a shipped name or a TOML path).
+        #[arg(long, default_value = "cnc-ball1-aluminium")]
+        profile: String,
+        /// Repetitions per measurement (the median is reported).
+        #[arg(long, default_value_t = 3)]
+        reps: usize,
+    },
     /// Error of the fast evaluator against the exact one over random geometries and materials.
     Accuracy {
         #[arg(long, default_value_t = 24)]
@@ -552,6 +562,12 @@ fn main() -> ExitCode {
                 seed,
             } => biscale::library::bench::accuracy(&dir, geometries.max(1), materials.max(1), seed)
                 .map(|t| print!("{t}")),
+            BenchCmd::Fab { profile, reps } => biscale::fab::profile::load_profile(
+                &profile,
+                &biscale::fab::profile::FabPaths::default_paths(),
+            )
+            .and_then(|p| biscale::fab::bench::bench_fab(&p, reps.max(1)))
+            .map(|t| print!("{t}")),
             BenchCmd::Accuracy { cases, seed } => {
                 biscale::bench::accuracy(cases.max(1), seed).map(|t| print!("{t}"))
             }
