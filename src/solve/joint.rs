@@ -241,8 +241,8 @@ pub fn search(
                             col += 1;
                         }
                     }
-                    for a in 0..ks {
-                        v[(i, col)] = -2.0 * dot(&pgs[a], &twr);
+                    for pa in &pgs {
+                        v[(i, col)] = -2.0 * dot(pa, &twr);
                         col += 1;
                     }
                 }
