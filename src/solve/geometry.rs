@@ -97,7 +97,7 @@ pub fn solve(
 }
 
 /// [`solve`], with the representatives' values taken from a joint search's representative pairs
-/// when the material is a library material and `reps` holds every rotation (stage 1 then
+/// when the material is a library material and `reps_values` holds every rotation (stage 1 then
 /// evaluates nothing; stages 2 and 3 use the material's own table as always).
 pub fn solve_with(
     lib: &Library,
