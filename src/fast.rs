@@ -18,7 +18,12 @@ pub fn fbar_one<G: LobeSource + ?Sized>(
     scratch: &mut Vec<(f64, Vmf)>,
 ) -> f64 {
     geo.lobes(p.wi, p.wo, scratch);
-    let s = mat.eval_sum(p.wi, p.wo, scratch);
+    clean(mat.eval_sum(p.wi, p.wo, scratch))
+}
+
+/// A value of `fbar` as the evaluators return it: non-finite or negative sums become 0.
+#[inline]
+fn clean(s: f64) -> f64 {
     if s.is_finite() && s > 0.0 {
         s
     } else {
@@ -74,7 +79,6 @@ impl FixedLobes {
                 .collect();
             (mat.cfg.clone(), prep)
         });
-        let clean = |s: f64| if s.is_finite() && s > 0.0 { s } else { 0.0 };
         if *cfg == mat.cfg {
             self.pairs
                 .iter()

@@ -347,6 +347,10 @@ impl Library {
     /// Check every file against the manifest (reads everything).
     pub fn verify_all(&mut self) -> Result<usize> {
         self.verify_all_arrays = true;
+        // Arrays already mapped without a checksum pass are mapped again, with it.
+        if let Ok(mut m) = self.arrays.lock() {
+            m.retain(|_, a| a.verified);
+        }
         for e in &self.manifest.files {
             if e.path.ends_with(".json") {
                 let _: serde_json::Value = self.json(&e.path)?;
