@@ -15,7 +15,14 @@
 //! * `a_v(wo)` comes from the same table on the diagonal `a = b`, so a flat patch is exact;
 //! * a planar cluster (one normal: groove faces, walls) takes its analytic projected area
 //!   `A_k (n·wo)+` times its jointly visible fraction, interpolated only over the nodes it faces,
-//!   so a face turning towards `wo` between two nodes is not lost to the node it turns away from.
+//!   so a face turning towards `wo` between two nodes is not lost to the node it turns away from;
+//! * for a material with a glossy lobe, which resolves the shape of a cluster's normal
+//!   distribution (a rough surface's cluster is a broad, flat-topped patch that one vMF does not
+//!   follow), a curved cluster comes instead as its sub-lobes: its whole facet distribution split
+//!   by k-means into up to 16 vMFs, weighted by their projected area towards `wo`, and turned
+//!   together so that their `(n·wo)`-weighted mean normal is the visible one. Visibility stays
+//!   per cluster; only the shape comes from the facets. The libraries keep one vMF per cluster
+//!   ([`BvndfConfig::library`]).
 //!
 //! The moments are integrated with view rays, as the exact evaluator does: for each node `b`,
 //! about 1024 stratified rays from `b` find the points `b` sees ([`Visibility::first_hit`]), and
@@ -26,7 +33,7 @@
 //! estimated from the rays of `b`, the more grazing node.
 
 use crate::dirgrid::DirGrid;
-use crate::frame::Vec3;
+use crate::frame::{Rotation, Vec3};
 use crate::heightfield::Heightfield;
 use crate::visibility::{ray_lattice, Visibility};
 use crate::vmf::{kappa_from_resultant, Vmf};
@@ -41,6 +48,9 @@ pub struct BvndfConfig {
     pub clusters: usize,
     /// View rays per grid direction (rounded to a whole number of cells per ray).
     pub rays: usize,
+    /// Sub-lobes per curved cluster: its whole normal distribution split further, for materials
+    /// with a glossy lobe. 1: every cluster is one vMF, as in the libraries.
+    pub sub_lobes: usize,
 }
 
 impl Default for BvndfConfig {
@@ -50,6 +60,19 @@ impl Default for BvndfConfig {
             n_phi: 16,
             clusters: 16,
             rays: 1024,
+            sub_lobes: 16,
+        }
+    }
+}
+
+impl BvndfConfig {
+    /// The representation the libraries store ([`crate::lightlobes`]): one vMF per cluster. Looks
+    /// that are compared with library items (the solvers' targets and re-evaluations) use it, so
+    /// that a library combination reproduces its own look.
+    pub fn library() -> Self {
+        BvndfConfig {
+            sub_lobes: 1,
+            ..BvndfConfig::default()
         }
     }
 }
@@ -71,6 +94,85 @@ pub struct CompactBvndf {
     pub planar: Vec<bool>,
     /// Area of each cluster in units of `A_base`.
     pub cluster_area: Vec<f64>,
+    /// Per curved cluster, its whole normal distribution split into sub-lobes (empty for planar
+    /// clusters and with `sub_lobes = 1`).
+    pub shapes: Vec<Vec<SubLobe>>,
+}
+
+/// One part of a cluster's normal distribution, from all its facets (visibility aside).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SubLobe {
+    /// `Σ A n` over the part's facets, in units of `A_base`.
+    pub resultant: Vec3,
+    /// `Σ A n nᵀ` (xx, yy, zz, xy, xz, yz).
+    pub second: [f64; 6],
+    /// The part's own vMF (mean direction, concentration from the mean resultant length).
+    pub lobe: Vmf,
+}
+
+/// The sub-lobes of every curved cluster: at most `s` of them, by area-weighted k-means within
+/// the cluster.
+pub(crate) fn cluster_shapes(
+    normals: &[Vec3],
+    areas: &[f64],
+    assign: &[u16],
+    planar: &[bool],
+    s: usize,
+) -> Vec<Vec<SubLobe>> {
+    let mut members: Vec<Vec<usize>> = vec![Vec::new(); planar.len()];
+    for (i, &k) in assign.iter().enumerate() {
+        members[k as usize].push(i);
+    }
+    members
+        .par_iter()
+        .zip(planar)
+        .map(|(idx, &flat)| {
+            if flat || s < 2 || idx.is_empty() {
+                return Vec::new();
+            }
+            let n: Vec<Vec3> = idx.iter().map(|&i| normals[i]).collect();
+            let a: Vec<f64> = idx.iter().map(|&i| areas[i]).collect();
+            let (sa, sc) = cluster_normals(&n, &a, s);
+            (0..sc.len())
+                .map(|k| {
+                    part_of(
+                        n.iter()
+                            .zip(&a)
+                            .zip(&sa)
+                            .filter(|(_, &j)| j as usize == k)
+                            .map(|((nn, aa), _)| (*nn, *aa)),
+                    )
+                })
+                .filter(|p| p.resultant.norm() > 0.0)
+                .collect()
+        })
+        .collect()
+}
+
+/// The moments and vMF of a set of `(normal, area)`.
+fn part_of(facets: impl Iterator<Item = (Vec3, f64)>) -> SubLobe {
+    let mut o = SubLobe {
+        resultant: Vec3::default(),
+        second: [0.0; 6],
+        lobe: Vmf::new(0.0, Vec3::Z),
+    };
+    let mut mass = 0.0;
+    for (n, a) in facets {
+        o.resultant = o.resultant + n * a;
+        let m = moments(n);
+        for q in 0..6 {
+            o.second[q] += a * m[3 + q];
+        }
+        mass += a;
+    }
+    let len = o.resultant.norm();
+    if mass > 0.0 && len > 0.0 {
+        o.lobe = Vmf::new(
+            kappa_from_resultant((len / mass).min(1.0)),
+            o.resultant * (1.0 / len),
+        );
+    }
+    o
 }
 
 #[inline]
@@ -242,6 +344,7 @@ impl CompactBvndf {
         for (a, &k) in areas.iter().zip(&assign) {
             cluster_area[k as usize] += a;
         }
+        let shapes = cluster_shapes(&normals, &areas, &assign, &planar, cfg.sub_lobes);
         CompactBvndf {
             grid,
             clusters: kc,
@@ -249,17 +352,22 @@ impl CompactBvndf {
             centres,
             planar,
             cluster_area,
+            shapes,
         }
     }
 
-    /// Bytes of the stored representation (the table and the centres).
+    /// Bytes of the stored representation (the table, the centres and the sub-lobes).
     pub fn bytes(&self) -> usize {
-        self.table.len() * 4 + self.centres.len() * 25
+        self.table.len() * 4
+            + self.centres.len() * 25
+            + self.shapes.iter().map(Vec::len).sum::<usize>() * std::mem::size_of::<SubLobe>()
     }
 
     /// The lobes of `gamma(·; wi, wo)`: `(weight, vMF)` per cluster, weights summing to at most 1.
-    /// Empty when `wo` is at or below the horizon.
-    pub fn lobes(&self, wi: Vec3, wo: Vec3, out: &mut Vec<(f64, Vmf)>) {
+    /// Empty when `wo` is at or below the horizon. `split`: curved clusters come as their
+    /// sub-lobes, for materials whose lobes resolve a cluster's shape
+    /// ([`crate::prefilter::Prefiltered::resolves_shape`]); otherwise one vMF per cluster.
+    pub fn lobes(&self, wi: Vec3, wo: Vec3, split: bool, out: &mut Vec<(f64, Vmf)>) {
         out.clear();
         if wi.z <= 0.0 || wo.z <= 0.0 {
             return;
@@ -284,6 +392,8 @@ impl CompactBvndf {
             centres: &self.centres,
             planar: &self.planar,
             area: &self.cluster_area,
+            shapes: &self.shapes,
+            split,
         };
         let dir = |n: usize| self.grid.direction(n);
         assemble_lobes(&clusters, wi, wo, &wa, dir, &wb, dir, entry, diag, out);
@@ -293,18 +403,23 @@ impl CompactBvndf {
 /// Anything that gives the lobes of `gamma(·; wi, wo)` (the full compact BVNDF, or its
 /// restriction to the library's lights, [`crate::lightlobes::LightLobes`]).
 pub trait LobeSource {
-    /// `(weight, vMF)` per normal cluster; empty where `gamma` is not defined.
-    fn lobes(&self, wi: Vec3, wo: Vec3, out: &mut Vec<(f64, Vmf)>);
+    /// `(weight, vMF)` per normal cluster, or with `split` per sub-lobe of the curved clusters
+    /// where the source keeps them ([`CompactBvndf::lobes`]); empty where `gamma` is not defined.
+    fn lobes(&self, wi: Vec3, wo: Vec3, split: bool, out: &mut Vec<(f64, Vmf)>);
     /// Lobes at most (scratch capacity).
     fn clusters(&self) -> usize;
 }
 
 impl LobeSource for CompactBvndf {
-    fn lobes(&self, wi: Vec3, wo: Vec3, out: &mut Vec<(f64, Vmf)>) {
-        CompactBvndf::lobes(self, wi, wo, out)
+    fn lobes(&self, wi: Vec3, wo: Vec3, split: bool, out: &mut Vec<(f64, Vmf)>) {
+        CompactBvndf::lobes(self, wi, wo, split, out)
     }
     fn clusters(&self) -> usize {
-        self.clusters
+        self.shapes
+            .iter()
+            .map(|s| s.len().max(1))
+            .sum::<usize>()
+            .max(self.clusters)
     }
 }
 
@@ -313,6 +428,10 @@ pub(crate) struct Clusters<'a> {
     pub centres: &'a [Vec3],
     pub planar: &'a [bool],
     pub area: &'a [f64],
+    /// Per cluster, its sub-lobes (empty: one vMF).
+    pub shapes: &'a [Vec<SubLobe>],
+    /// Whether curved clusters come as their sub-lobes.
+    pub split: bool,
 }
 
 /// Turn tabulated moments into lobes (shared by every table layout). `wa`, `wb`: interpolation
@@ -398,14 +517,15 @@ pub(crate) fn assemble_lobes<'t>(
             continue;
         }
         // (n·wo)-weighted normal moment G2 wo.
-        let m = Vec3::new(
-            a[3] * wo.x + a[6] * wo.y + a[7] * wo.z,
-            a[6] * wo.x + a[4] * wo.y + a[8] * wo.z,
-            a[7] * wo.x + a[8] * wo.y + a[5] * wo.z,
-        );
+        let m = second_times(&a[3..], wo);
         let len = m.norm();
         if !(len > 0.0) {
             continue;
+        }
+        if let Some(shape) = cl.shapes.get(c).filter(|s| cl.split && s.len() > 1) {
+            if push_sub_lobes(shape, wo, m, mass / diag, out) {
+                continue;
+            }
         }
         let lobe = if cl.planar[c] {
             Vmf::new(crate::vmf::KAPPA_MAX, cl.centres[c])
@@ -414,6 +534,49 @@ pub(crate) fn assemble_lobes<'t>(
         };
         out.push((mass / diag, lobe));
     }
+}
+
+/// A curved cluster as its sub-lobes: each weighted by its projected area towards `wo`, the
+/// whole set turned so that its `(n·wo)`-weighted mean normal is the visible one, `m`, and the
+/// weights summing to the cluster's `share`. False (nothing pushed) when no sub-lobe faces `wo`.
+fn push_sub_lobes(
+    sub: &[SubLobe],
+    wo: Vec3,
+    m: Vec3,
+    share: f64,
+    out: &mut Vec<(f64, Vmf)>,
+) -> bool {
+    let start = out.len();
+    let mut total = 0.0;
+    let mut pred = Vec3::default();
+    for s in sub {
+        let w = s.resultant.dot(wo);
+        if w > 0.0 {
+            pred = pred + second_times(&s.second, wo);
+            total += w;
+            out.push((w, s.lobe));
+        }
+    }
+    if !(total > 0.0) || !(pred.norm() > 0.0) {
+        out.truncate(start);
+        return false;
+    }
+    let turn = Rotation::between(pred.normalized(), m.normalized());
+    for (w, l) in &mut out[start..] {
+        *w *= share / total;
+        *l = Vmf::new(l.kappa, turn.apply(l.mu));
+    }
+    true
+}
+
+/// `Q w` for the symmetric matrix `Q` stored as `(xx, yy, zz, xy, xz, yz)`.
+#[inline]
+fn second_times(q: &[f64], w: Vec3) -> Vec3 {
+    Vec3::new(
+        q[0] * w.x + q[3] * w.y + q[4] * w.z,
+        q[3] * w.x + q[1] * w.y + q[5] * w.z,
+        q[4] * w.x + q[5] * w.y + q[2] * w.z,
+    )
 }
 
 /// The 9 moments of one hit normal: `n` and the upper triangle of `n nᵀ`.
@@ -453,7 +616,12 @@ mod tests {
         let hf = Heightfield::flat(8, 8);
         let b = CompactBvndf::build(&hf, &BvndfConfig::default());
         let mut l = Vec::new();
-        b.lobes(dir_from_deg(30.0, 20.0), dir_from_deg(80.0, 250.0), &mut l);
+        b.lobes(
+            dir_from_deg(30.0, 20.0),
+            dir_from_deg(80.0, 250.0),
+            true,
+            &mut l,
+        );
         let total: f64 = l.iter().map(|x| x.0).sum();
         assert!((total - 1.0).abs() < 1e-6, "{l:?}");
         assert!(l.iter().all(|x| x.1.mu.z > 0.999999 && x.1.kappa >= 1e5));

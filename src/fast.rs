@@ -17,7 +17,7 @@ pub fn fbar_one<G: LobeSource + ?Sized>(
     p: &DirPair,
     scratch: &mut Vec<(f64, Vmf)>,
 ) -> f64 {
-    geo.lobes(p.wi, p.wo, scratch);
+    geo.lobes(p.wi, p.wo, mat.resolves_shape(), scratch);
     clean(mat.eval_sum(p.wi, p.wo, scratch))
 }
 
@@ -41,7 +41,8 @@ pub fn fbar<G: LobeSource + ?Sized>(geo: &G, mat: &Prefiltered, pairs: &[DirPair
 }
 
 /// The lobes of one geometry at a fixed set of pairs, assembled once: evaluating many materials
-/// on the same geometry (the material solver) then costs only the `F` reads.
+/// on the same geometry (the material solver) then costs only the `F` reads. One vMF per
+/// cluster (no sub-lobes: they depend on the material), as in the libraries.
 pub struct FixedLobes {
     pairs: Vec<DirPair>,
     lobes: Vec<Vec<(f64, Vmf)>>,
@@ -55,7 +56,7 @@ impl FixedLobes {
             .iter()
             .map(|p| {
                 let mut l = Vec::with_capacity(geo.clusters());
-                geo.lobes(p.wi, p.wo, &mut l);
+                geo.lobes(p.wi, p.wo, false, &mut l);
                 l
             })
             .collect();

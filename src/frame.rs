@@ -101,6 +101,42 @@ pub fn rotate_z(w: Vec3, angle: f64) -> Vec3 {
     Vec3::new(c * w.x - s * w.y, s * w.x + c * w.y, w.z)
 }
 
+/// The shortest rotation taking one unit vector onto another (Rodrigues' formula).
+#[derive(Debug, Clone, Copy)]
+pub struct Rotation {
+    axis: Vec3,
+    sin: f64,
+    cos: f64,
+}
+
+impl Rotation {
+    /// The rotation taking unit `from` onto unit `to` about their common normal; the identity
+    /// when they are parallel or opposite (no unique axis).
+    pub fn between(from: Vec3, to: Vec3) -> Self {
+        let axis = from.cross(to);
+        let sin = axis.norm();
+        if sin > 1e-12 {
+            Rotation {
+                axis: axis * (1.0 / sin),
+                sin,
+                cos: from.dot(to),
+            }
+        } else {
+            Rotation {
+                axis: Vec3::Z,
+                sin: 0.0,
+                cos: 1.0,
+            }
+        }
+    }
+
+    /// `v` rotated (renormalised against rounding).
+    pub fn apply(&self, v: Vec3) -> Vec3 {
+        let k = self.axis;
+        (v * self.cos + k.cross(v) * self.sin + k * (k.dot(v) * (1.0 - self.cos))).normalized()
+    }
+}
+
 /// An orthonormal frame `(t, b, n)` around unit `n` (Duff et al. 2017, branchless).
 pub fn frame_around(n: Vec3) -> (Vec3, Vec3) {
     let sign = 1f64.copysign(n.z);
@@ -121,6 +157,20 @@ pub struct DirPair {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn rotation_between_takes_from_onto_to() {
+        let (a, b) = (dir_from_deg(30.0, 20.0), dir_from_deg(70.0, 200.0));
+        let r = Rotation::between(a, b);
+        assert!((r.apply(a) - b).norm() < 1e-12);
+        let c = dir_from_deg(10.0, 80.0);
+        assert!(
+            (r.apply(c).dot(b) - c.dot(a)).abs() < 1e-12,
+            "angles are kept"
+        );
+        let same = Rotation::between(a, a);
+        assert!((same.apply(c) - c).norm() < 1e-12);
+    }
 
     #[test]
     fn angles_round_trip() {

@@ -143,7 +143,8 @@ impl<'a> LightLobes<'a> {
 impl LobeSource for LightLobes<'_> {
     /// The lobes of `gamma(·; wi, wo)`. Defined only where `wi` is one of the library's lights
     /// (to 1e-9); elsewhere, and at or below the horizon, there are none.
-    fn lobes(&self, wi: Vec3, wo: Vec3, out: &mut Vec<(f64, Vmf)>) {
+    /// The libraries keep one vMF per cluster: `split` does not apply.
+    fn lobes(&self, wi: Vec3, wo: Vec3, _split: bool, out: &mut Vec<(f64, Vmf)>) {
         out.clear();
         if wo.z <= 0.0 {
             return;
@@ -166,6 +167,8 @@ impl LobeSource for LightLobes<'_> {
             centres: &self.centres,
             planar: &self.planar,
             area: &self.area,
+            shapes: &[],
+            split: false,
         };
         assemble_lobes(
             &cl,
@@ -202,11 +205,16 @@ mod tests {
         let ll = LightLobes::build(&lay, &hf, 64, 4);
         assert_eq!(ll.record().len(), record_len(&lay, 4));
         let mut out = Vec::new();
-        ll.lobes(lay.lights[3], dir_from_deg(50.0, 100.0), &mut out);
+        ll.lobes(lay.lights[3], dir_from_deg(50.0, 100.0), false, &mut out);
         let total: f64 = out.iter().map(|x| x.0).sum();
         assert!((total - 1.0).abs() < 1e-6, "{out:?}");
         // Not a library light: no lobes.
-        ll.lobes(dir_from_deg(1.0, 2.0), dir_from_deg(50.0, 100.0), &mut out);
+        ll.lobes(
+            dir_from_deg(1.0, 2.0),
+            dir_from_deg(50.0, 100.0),
+            false,
+            &mut out,
+        );
         assert!(out.is_empty());
         let short = ll.record()[..10].to_vec();
         let e = LightLobes::from_record(&lay, 4, Cow::Owned(short), "x.bsa row 3").unwrap_err();
@@ -226,7 +234,7 @@ mod tests {
         ] {
             let hf = parse_generator(spec).unwrap().build().unwrap();
             let ll = LightLobes::build(&lay, &hf, 1024, 16);
-            let full = CompactBvndf::build(&hf, &BvndfConfig::default());
+            let full = CompactBvndf::build(&hf, &BvndfConfig::library());
             let pairs: Vec<DirPair> = (0..7)
                 .flat_map(|l| {
                     let wi = lay.lights[l];

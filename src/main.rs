@@ -74,8 +74,12 @@ enum Cmd {
         #[arg(long, default_value_t = 2)]
         exact_samples: usize,
         /// Fast method: normal clusters (vMF lobes per direction pair).
-        #[arg(long, default_value_t = 16)]
-        lobes: usize,
+        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
+        lobes: u16,
+        /// Fast method: sub-lobes per curved cluster, used with glossy materials (1: one vMF per
+        /// cluster, as the libraries store; faster, less accurate on rough surfaces).
+        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
+        sub_lobes: u16,
         /// No progress log on standard error.
         #[arg(long, short = 'q')]
         quiet: bool,
@@ -307,6 +311,9 @@ enum BenchCmd {
         cases: usize,
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// Sub-lobes per curved cluster of the fast method (1: one vMF per cluster).
+        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
+        sub_lobes: u16,
     },
 }
 
@@ -358,6 +365,7 @@ fn main() -> ExitCode {
             height_scale,
             exact_samples,
             lobes,
+            sub_lobes,
             quiet,
         } => {
             let to_stdout = out.is_none();
@@ -374,7 +382,8 @@ fn main() -> ExitCode {
                 height_scale,
                 exact_samples: exact_samples.clamp(1, 16),
                 bvndf: BvndfConfig {
-                    clusters: lobes.clamp(1, 64),
+                    clusters: lobes as usize,
+                    sub_lobes: sub_lobes as usize,
                     ..BvndfConfig::default()
                 },
                 quiet,
@@ -568,9 +577,12 @@ fn main() -> ExitCode {
             )
             .and_then(|p| biscale::fab::bench::bench_fab(&p, reps.max(1)))
             .map(|t| print!("{t}")),
-            BenchCmd::Accuracy { cases, seed } => {
-                biscale::bench::accuracy(cases.max(1), seed).map(|t| print!("{t}"))
-            }
+            BenchCmd::Accuracy {
+                cases,
+                seed,
+                sub_lobes,
+            } => biscale::bench::accuracy(cases.max(1), seed, sub_lobes as usize)
+                .map(|t| print!("{t}")),
         },
     };
     match result {

@@ -62,6 +62,18 @@ pub struct Prefiltered {
     min_width: Option<f64>,
 }
 
+impl Prefiltered {
+    /// Whether the material has a lobe that resolves the shape of a geometry's normal
+    /// distribution (any lobe but a Lambertian one): then the fast evaluator reads curved normal
+    /// clusters as their sub-lobes ([`crate::bvndf::CompactBvndf::lobes`]).
+    pub fn resolves_shape(&self) -> bool {
+        self.material
+            .lobes
+            .iter()
+            .any(|l| !matches!(l, crate::material::Lobe::Lambert(_)))
+    }
+}
+
 /// The rotated frame `(x', y', z' = h)` of a direction pair and its half angle θh.
 #[inline]
 pub fn half_frame(wi: Vec3, wo: Vec3) -> Option<(Vec3, Vec3, Vec3, f64)> {

@@ -185,6 +185,12 @@ fn nonsense_input_is_rejected_clearly() {
     let mut a = base("vgroove:n=16", "lambert:albedo=0.5", pairs_s);
     a[i + 1] = pairs.join("o.csv").to_str().unwrap().to_string();
     run(a, &["pairs.csv"]);
+    // Lobe counts out of range name the option and the range.
+    for opt in ["--lobes", "--sub-lobes"] {
+        let mut a = base("vgroove:n=16", "lambert:albedo=0.5", pairs_s);
+        a.extend([opt.to_string(), "0".to_string()]);
+        run(a, &[opt, "1..=64"]);
+    }
 
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -198,7 +198,7 @@ fn extreme_geometry_and_materials_through_the_fast_evaluator() {
         );
         let mut lobes = Vec::new();
         for p in &pairs {
-            geo.lobes(p.wi, p.wo, &mut lobes);
+            geo.lobes(p.wi, p.wo, true, &mut lobes);
             for (w, l) in &lobes {
                 assert!(
                     ok(*w)

@@ -161,9 +161,10 @@ pub fn fast_values<G: crate::bvndf::LobeSource + ?Sized>(
     crate::fast::fbar(geo, mat, &dir_pairs(s))
 }
 
-/// The compact BVNDF the solvers use for re-evaluation (the forward model's default grid).
+/// The compact BVNDF the solvers use for targets and re-evaluation: the forward model's grid,
+/// one vMF per cluster as in the libraries ([`BvndfConfig::library`]).
 pub fn bvndf_of(hf: &Heightfield) -> CompactBvndf {
-    CompactBvndf::build(hf, &BvndfConfig::default())
+    CompactBvndf::build(hf, &BvndfConfig::library())
 }
 
 /// The samples of `look` rotated by `psi` (radians) at the library's `lights`, and the target
