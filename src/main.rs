@@ -191,6 +191,11 @@ enum Cmd {
         /// Write the sweep as a PNG plot.
         #[arg(long)]
         plot: Option<PathBuf>,
+        /// Targets are the combinations as the library represents them (its light lobes and
+        /// tables), and answers are judged with the same data: the paper's protocol. Default:
+        /// targets from the full forward model, answers verified with it. Needs --psi 1.
+        #[arg(long)]
+        library_targets: bool,
         #[arg(long, short = 'q')]
         quiet: bool,
     },
@@ -484,6 +489,7 @@ fn main() -> ExitCode {
             joint_pool,
             sweep,
             plot,
+            library_targets,
             quiet,
         } => {
             let progress = biscale::library::progress::Progress { quiet };
@@ -511,6 +517,7 @@ fn main() -> ExitCode {
                             sweep: sweep || plot.is_some(),
                             plot,
                             quiet,
+                            library_targets,
                         },
                     )
                 })
