@@ -60,6 +60,8 @@ pub struct Prefiltered {
     pub data: Vec<f32>,
     /// `material.min_lobe_width()`, read for every lobe (the point-lobe test).
     min_width: Option<f64>,
+    /// [`Self::resolves_shape`], read for every pair the fast evaluator assembles.
+    resolves: bool,
 }
 
 impl Prefiltered {
@@ -67,11 +69,15 @@ impl Prefiltered {
     /// distribution (any lobe but a Lambertian one): then the fast evaluator reads curved normal
     /// clusters as their sub-lobes ([`crate::bvndf::CompactBvndf::lobes`]).
     pub fn resolves_shape(&self) -> bool {
-        self.material
-            .lobes
-            .iter()
-            .any(|l| !matches!(l, crate::material::Lobe::Lambert(_)))
+        self.resolves
     }
+}
+
+/// Any lobe but a Lambertian one ([`Prefiltered::resolves_shape`]).
+fn resolves_shape(mat: &Material) -> bool {
+    mat.lobes
+        .iter()
+        .any(|l| !matches!(l, crate::material::Lobe::Lambert(_)))
 }
 
 /// The rotated frame `(x', y', z' = h)` of a direction pair and its half angle θh.
@@ -172,6 +178,7 @@ impl Prefiltered {
             material: mat.clone(),
             data,
             min_width: mat.min_lobe_width(),
+            resolves: resolves_shape(mat),
         }
     }
 
@@ -194,6 +201,7 @@ impl Prefiltered {
             material: mat.clone(),
             data,
             min_width: mat.min_lobe_width(),
+            resolves: resolves_shape(mat),
         })
     }
 
