@@ -305,6 +305,31 @@ impl Response {
     /// the splat spreads every hit normal over the node's neighbourhood, and a point value would
     /// hit or miss the narrow peak (errors of 100 % and more for GGX alpha = 0.02).
     pub fn new(layout: &GammaLayout, mat: &Material, pairs: &[(usize, Vec3)]) -> Self {
+        Self::with_splat(layout, mat, pairs, &|wi, wo, lobe| {
+            quadrature(mat, wi, wo, lobe, SPLAT_SAMPLES)
+        })
+    }
+
+    /// [`Response::new`] with the splat averages read from the material's prefiltered table
+    /// (the same integral, tabulated): about 20× faster for narrow lobes, for searches that
+    /// only rank with the response.
+    pub fn with_table(
+        layout: &GammaLayout,
+        mat: &Material,
+        pf: &crate::prefilter::Prefiltered,
+        pairs: &[(usize, Vec3)],
+    ) -> Self {
+        Self::with_splat(layout, mat, pairs, &|wi, wo, lobe| pf.eval(wi, wo, lobe))
+    }
+
+    /// The response with `splat(wi, wo, lobe)` giving the integrand averaged over a node's
+    /// splat lobe where a narrow glossy lobe needs it.
+    fn with_splat(
+        layout: &GammaLayout,
+        mat: &Material,
+        pairs: &[(usize, Vec3)],
+        splat: &(dyn Fn(Vec3, Vec3, &Vmf) -> f64 + Sync),
+    ) -> Self {
         let nb = layout.normals.len();
         let width = mat.min_lobe_width();
         let resp = pairs
@@ -320,9 +345,7 @@ impl Response {
                         let near =
                             |w: f64| n.dot(h) > (3.0 * (step + w)).min(std::f64::consts::PI).cos();
                         let v = match width {
-                            Some(w) if w < step && near(w) => {
-                                quadrature(mat, wi, wo, &Vmf::new(kb, n), SPLAT_SAMPLES)
-                            }
+                            Some(w) if w < step && near(w) => splat(wi, wo, &Vmf::new(kb, n)),
                             _ => {
                                 let c = n.dot(wi);
                                 if c > 0.0 && n.dot(wo) > 0.0 {
@@ -353,27 +376,81 @@ impl Response {
         }
     }
 
-    /// `fbar` at every pair for one geometry column (`f32` or any element convertible to `f64`).
-    pub fn apply<T: Copy + Into<f64>>(&self, col: &[T]) -> Vec<f64> {
+    /// `fbar` at every pair for one geometry column (`f16` or `f32`). The column's row blocks
+    /// that the pairs read (one per light and view node) are converted to `f32` once, then
+    /// each pair is up to four dot products over the normal nodes.
+    pub fn apply<T: ColumnElement>(&self, col: &[T]) -> Vec<f64> {
+        let nb = self.nb;
+        let mut slot = std::collections::HashMap::new();
+        let mut buf: Vec<f32> = Vec::new();
+        let mut block = |blk: usize, buf: &mut Vec<f32>| -> usize {
+            *slot.entry(blk).or_insert_with(|| {
+                let at = buf.len();
+                buf.resize(at + nb, 0.0);
+                T::to_f32s(&col[blk * nb..(blk + 1) * nb], &mut buf[at..]);
+                at
+            })
+        };
+        let mut at = Vec::with_capacity(self.pairs.len());
+        for p in &self.pairs {
+            at.push(p.views.map(|(v, w)| {
+                if w == 0.0 {
+                    (0, 0.0)
+                } else {
+                    (block(p.light * self.nv + v, &mut buf), w)
+                }
+            }));
+        }
         self.pairs
             .iter()
-            .map(|p| {
+            .zip(&at)
+            .map(|(p, views)| {
                 let mut s = 0.0;
-                for &(v, w) in &p.views {
-                    if w == 0.0 {
-                        continue;
+                for &(o, w) in views {
+                    if w != 0.0 {
+                        s += w * dot32(&buf[o..o + nb], &p.f);
                     }
-                    let row = &col[(p.light * self.nv + v) * self.nb..][..self.nb];
-                    let mut d = 0.0;
-                    for (g, f) in row.iter().zip(&p.f) {
-                        d += (*g).into() * *f as f64;
-                    }
-                    s += w * d;
                 }
                 s.max(0.0)
             })
             .collect()
     }
+}
+
+/// Elements of a stored geometry column: converted to `f32` a row block at a time.
+pub trait ColumnElement: Copy {
+    fn to_f32s(src: &[Self], dst: &mut [f32]);
+}
+
+impl ColumnElement for f32 {
+    fn to_f32s(src: &[f32], dst: &mut [f32]) {
+        dst.copy_from_slice(src);
+    }
+}
+
+impl ColumnElement for half::f16 {
+    fn to_f32s(src: &[half::f16], dst: &mut [f32]) {
+        use half::slice::HalfFloatSliceExt;
+        src.convert_to_f32_slice(dst);
+    }
+}
+
+/// A dot product in `f32` with eight partial sums (vectorised), returned as `f64`.
+fn dot32(a: &[f32], b: &[f32]) -> f64 {
+    let mut acc = [0f32; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f32 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for i in 0..8 {
+            acc[i] += x[i] * y[i];
+        }
+    }
+    (acc.iter().sum::<f32>() + tail) as f64
 }
 
 #[cfg(test)]

@@ -116,6 +116,10 @@ enum Cmd {
         /// Items re-ranked with their own library data [default: one per 40 library items, 64 to 1024]
         #[arg(long)]
         pool: Option<usize>,
+        /// Geometry solver: rank the library by the representatives' light lobes only, not also
+        /// by their binned columns (the pool then comes from one ranking).
+        #[arg(long)]
+        lobes_search_only: bool,
         /// General solver: starts and iterations per start.
         #[arg(long, default_value_t = 5)]
         starts: usize,
@@ -173,6 +177,10 @@ enum Cmd {
         /// Items re-ranked with their own library data [default: one per 40 library items, 64 to 1024]
         #[arg(long)]
         pool: Option<usize>,
+        /// Geometry solver: rank the library by the representatives' light lobes only, not also
+        /// by their binned columns (the pool then comes from one ranking).
+        #[arg(long)]
+        lobes_search_only: bool,
         #[arg(long, default_value_t = 3)]
         k: usize,
         #[arg(long, default_value_t = 3)]
@@ -411,6 +419,7 @@ fn main() -> ExitCode {
             psi,
             k,
             pool,
+            lobes_search_only,
             starts,
             iterations,
             beam,
@@ -445,6 +454,7 @@ fn main() -> ExitCode {
                     options: SolveOptions {
                         k: k.max(1),
                         pool: pool.map_or(0, |p| p.max(1)),
+                        binned_search: !lobes_search_only,
                         psi: psi.max(1),
                         beta,
                         final_eval: match final_eval {
@@ -483,6 +493,7 @@ fn main() -> ExitCode {
             seed,
             psi,
             pool,
+            lobes_search_only,
             k,
             starts,
             beam,
@@ -503,6 +514,7 @@ fn main() -> ExitCode {
                             options: biscale::solve::SolveOptions {
                                 psi: psi.max(1),
                                 pool: pool.map_or(0, |p| p.max(1)),
+                                binned_search: !lobes_search_only,
                                 k: k.max(1),
                                 final_eval: biscale::solve::Final::Fast,
                                 ..Default::default()

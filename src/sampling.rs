@@ -150,6 +150,19 @@ pub fn sample(
 }
 
 impl Samples {
+    /// Every `step`-th pair (from the first) with its weight, and the same entries of `t`: a
+    /// coarse version of the set, for ranking many candidates before evaluating the best at
+    /// every pair.
+    pub fn every(&self, step: usize, t: &[f64]) -> (Samples, Vec<f64>) {
+        let step = step.max(1);
+        let s = Samples {
+            pairs: self.pairs.iter().step_by(step).copied().collect(),
+            lights: self.lights.clone(),
+            weights: self.weights.iter().step_by(step).copied().collect(),
+        };
+        (s, t.iter().step_by(step).copied().collect())
+    }
+
     /// The target's values at the samples, with the geometry rotated by `psi` about the normal
     /// (the target is read at the pairs rotated by `psi`, Sec. 6).
     pub fn values(&self, target: &(dyn Fn(Vec3, Vec3) -> f64 + Sync), psi: f64) -> Vec<f64> {
@@ -197,6 +210,22 @@ impl Samples {
 mod tests {
     use super::*;
     use crate::target::Target;
+
+    #[test]
+    fn every_keeps_each_steps_pair_with_its_weight_and_target_value() {
+        let s = Samples {
+            pairs: (0..10).map(|i| (i % 2, Vec3::new(0.0, 0.0, 1.0))).collect(),
+            lights: vec![Vec3::Z, Vec3::Z],
+            weights: (0..10).map(|i| i as f64).collect(),
+        };
+        let t: Vec<f64> = (0..10).map(|i| 10.0 * i as f64).collect();
+        let (c, ct) = s.every(4, &t);
+        assert_eq!(c.weights, vec![0.0, 4.0, 8.0]);
+        assert_eq!(ct, vec![0.0, 40.0, 80.0]);
+        assert_eq!(c.pairs.len(), 3);
+        assert_eq!(c.lights.len(), 2);
+        assert_eq!(s.every(0, &t).1, t, "a step of 0 keeps every pair");
+    }
 
     #[test]
     fn samples_concentrate_on_the_highlight_and_weights_follow_the_density() {

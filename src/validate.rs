@@ -411,18 +411,22 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
 fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
     let mi = lib.material_items()?;
     let (ng, nm) = (lib.manifest.geometries, lib.manifest.materials);
-    // (pool, psi, re-rank with light lobes (else binned columns), final evaluation)
-    let settings: Vec<(usize, usize, bool, Final)> = vec![
-        (1, 1, false, Final::Library),
-        (64, 1, false, Final::Library),
-        (1, 1, true, Final::Library),
-        (4, 1, true, Final::Library),
-        (16, 1, true, Final::Library),
-        (64, 1, true, Final::Library),
-        (256, 1, true, Final::Library),
-        (1024, 1, true, Final::Library),
-        (256, 4, true, Final::Library),
-        (256, 1, true, Final::Fast),
+    // (pool, psi, re-rank with light lobes (else binned columns), stage 1 also ranks by binned
+    // columns, final evaluation)
+    let settings: Vec<(usize, usize, bool, bool, Final)> = vec![
+        (1, 1, false, false, Final::Library),
+        (64, 1, false, false, Final::Library),
+        (1, 1, true, false, Final::Library),
+        (4, 1, true, false, Final::Library),
+        (16, 1, true, false, Final::Library),
+        (64, 1, true, false, Final::Library),
+        (256, 1, true, false, Final::Library),
+        (16, 1, true, true, Final::Library),
+        (64, 1, true, true, Final::Library),
+        (256, 1, true, true, Final::Library),
+        (1024, 1, true, true, Final::Library),
+        (256, 4, true, true, Final::Library),
+        (256, 1, true, true, Final::Fast),
     ];
     let mut rng = Rng::new(job.seed ^ 0x5eed);
     let cases: Vec<(usize, usize)> = (0..job.cases)
@@ -432,13 +436,14 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
         .iter()
         .map(|&(g, m)| combo_look(lib, g, m))
         .collect::<Result<_>>()?;
-    let mut out = String::from("\nError against run time (geometry solver, same cases; errors verified with the target's model):\n\n| re-ranked pool | re-rank by | psi | final | median error | within 7 % | recovery | median time |\n|---|---|---|---|---|---|---|---|\n");
+    let mut out = String::from("\nError against run time (geometry solver, same cases; errors verified with the target's model):\n\n| re-ranked pool | stage 1 / stage 2 by | psi | final | median error | within 7 % | recovery | median time |\n|---|---|---|---|---|---|---|---|\n");
     let mut points = Vec::new();
-    for &(pool, psi, rerank_fast, fin) in &settings {
+    for &(pool, psi, rerank_fast, binned_search, fin) in &settings {
         let opt = SolveOptions {
             pool,
             psi,
             rerank_fast,
+            binned_search,
             final_eval: fin,
             k: 1,
             ..job.options.clone()
@@ -458,10 +463,10 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
         }
         let (me, mt) = (Tally::q(&t.errors, 0.5), Tally::q(&t.times, 0.5));
         points.push((mt, me));
-        let by = if rerank_fast {
-            "light lobes + fast"
-        } else {
-            "binned column"
+        let by = match (rerank_fast, binned_search) {
+            (false, _) => "binned / binned",
+            (true, false) => "lobes / lobes",
+            (true, true) => "lobes + binned / lobes",
         };
         out += &format!(
             "| {pool} | {by} | {psi} | {fin:?} | {:.2} % | {:.1} % | {:.1} % | {:.3} s |\n",

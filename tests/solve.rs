@@ -79,10 +79,24 @@ fn geometry_solver_is_deterministic_sorted_and_reads_no_material_arrays() {
         !reads.contains("material/"),
         "a material-fixed solve read {reads}"
     );
-    // The search and the re-rank use the stored light lobes; the binned matrix is for building.
+    // The search and the re-rank use the stored light lobes; the second ranking of the search
+    // reads the representatives' binned columns.
+    assert!(
+        reads.contains("geometry/lobes.bsa") && reads.contains("geometry/gamma.bsa"),
+        "a geometry solve read {reads}"
+    );
+    // With one ranking the binned matrix is not read at all.
+    let lib = Library::open(&tiny_library()).unwrap();
+    let one = SolveOptions {
+        binned_search: false,
+        ..opt
+    };
+    let c = biscale::solve::geometry::solve(&lib, &look, &mat, "ggx", None, &one).unwrap();
+    assert_eq!(c.candidates.len(), 3);
+    let reads = lib.reads().join(" ");
     assert!(
         reads.contains("geometry/lobes.bsa") && !reads.contains("geometry/gamma.bsa"),
-        "a geometry solve read {reads}"
+        "a geometry solve with one ranking read {reads}"
     );
 }
 

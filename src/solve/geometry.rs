@@ -4,16 +4,21 @@
 //! `fbar` there with their light lobes ([`crate::lightlobes`], stored in the library: nothing is
 //! rebuilt) and the material's prefiltered table, and get every geometry's approximate `fbar` as
 //! representatives × CX weights (Eq. 12: `fbar` is linear in the binned BVNDF the CX weights
-//! were fitted to, so any accurate evaluation of the representatives may be combined). The best
-//! `pool` (geometry, rotation) pairs are re-ranked with their own light lobes, and the best `k`
-//! geometries — each once, at its best rotation — evaluated with the fast or exact evaluator. With `rerank_fast = false` both stages use the
-//! binned columns instead (the material's [`Response`]), for comparison.
+//! were fitted to, so any accurate evaluation of the representatives may be combined). Stage 1
+//! also ranks by the representatives' binned columns with the material's response (the linear
+//! model the weights were fitted to), and the pool of `pool` (geometry, rotation) pairs takes the
+//! best of both rankings in turn: where an item's large weights amplify the difference between
+//! light lobes and binned columns, the first ranking misses it and the second does not. The
+//! pool's pairs are re-ranked with their own light lobes, and the best `k` geometries — each
+//! once, at its best rotation — evaluated with the fast or exact evaluator. With
+//! `rerank_fast = false` both stages use the binned columns instead (the material's
+//! [`Response`]), for comparison.
 
 use super::joint::RepPairs;
 use super::{
-    bvndf_of, exact_values, fast_values, library_heightfield, material_prefiltered, psi_angle,
-    rescore_share, rotated_samples, search_errors, smallest, Candidate, Final, Look, SolveOptions,
-    SolveResult, SolveStats,
+    bvndf_of, exact_values, fast_values, interleave, library_heightfield, material_prefiltered,
+    psi_angle, rescore_share, rotated_samples, search_errors, smallest, Candidate, Final, Look,
+    SolveOptions, SolveResult, SolveStats,
 };
 use crate::error::Result;
 use crate::gamma::Response;
@@ -75,6 +80,13 @@ impl ItemData {
         }
     }
 }
+
+/// Stage 2 ranks a pool larger than this at every [`COARSE_STEP`]-th sample first, and evaluates
+/// its best quarter (at least this many) at every sample.
+pub const COARSE_KEEP: usize = 64;
+
+/// Sample stride of stage 2's coarse ranking.
+pub const COARSE_STEP: usize = 4;
 
 /// Solve for the geometry with `material` fixed. `material_label` names it in the results.
 pub fn solve(
@@ -174,13 +186,70 @@ pub fn solve_with(
         let e = search_errors(&r.samples, &r.target, a, xs, items.len(), rescore);
         scored.extend(e.into_iter().enumerate().map(|(j, e)| (e, j, ri)));
     }
+    let errs: Vec<f64> = scored.iter().map(|s| s.0).collect();
+    let by_lobes = smallest(&errs, pool_size);
+    // The second ranking: the representatives' binned columns with the material's response,
+    // the linear model the CX weights were fitted to (same (rotation, item) layout).
+    let pool = match (&data, opt.binned_search) {
+        (ItemData::Lobes { pf, .. }, true) => {
+            let gamma = lib.array("geometry/gamma.bsa")?;
+            let (g16, rows) = (gamma.f16s()?, layout.rows());
+            let mut binned = Vec::with_capacity(errs.len());
+            for r in &rots {
+                let resp = Response::with_table(&layout, material, pf, &r.samples.pairs);
+                let a: Vec<Vec<f64>> = reps
+                    .par_iter()
+                    .map(|&k| {
+                        let k = k as usize;
+                        g16.get(k * rows..(k + 1) * rows)
+                            .map(|c| resp.apply(c))
+                            .ok_or_else(|| {
+                                crate::error::Error::new(
+                                    gamma.path.display().to_string(),
+                                    format!("no column for representative {k}"),
+                                )
+                            })
+                    })
+                    .collect::<Result<_>>()?;
+                binned.extend(search_errors(
+                    &r.samples,
+                    &r.target,
+                    &a,
+                    xs,
+                    items.len(),
+                    rescore,
+                ));
+            }
+            interleave(&by_lobes, &smallest(&binned, pool_size), pool_size)
+        }
+        _ => by_lobes,
+    };
     stats.items_searched = items.len() * rots.len();
     stats.representatives = reps.len();
     stats.search_seconds = t0.elapsed().as_secs_f64();
-    let errs: Vec<f64> = scored.iter().map(|s| s.0).collect();
-    let pool = smallest(&errs, pool_size);
     // Stage 2: each pooled geometry's own data.
     let t1 = Instant::now();
+    // A large pool is first ranked at every COARSE_STEP-th sample, and only its best quarter
+    // (at least COARSE_KEEP) is evaluated at every sample.
+    let pool = match &data {
+        ItemData::Lobes { lobes, pf } if pool.len() > COARSE_KEEP => {
+            let coarse: Vec<(Samples, Vec<f64>)> = rots
+                .iter()
+                .map(|r| r.samples.every(COARSE_STEP, &r.target))
+                .collect();
+            let errs: Vec<f64> = pool
+                .par_iter()
+                .map(|&i| {
+                    let (_, j, ri) = scored[i];
+                    let (s, t) = &coarse[ri];
+                    Ok(s.rel_error(t, &fast_values(&lobes.get(j)?, pf, s)))
+                })
+                .collect::<Result<_>>()?;
+            let keep = (pool.len() / 4).max(COARSE_KEEP).max(opt.k);
+            smallest(&errs, keep).into_iter().map(|i| pool[i]).collect()
+        }
+        _ => pool,
+    };
     let mut reranked: Vec<(f64, f64, usize, usize)> = pool
         .par_iter()
         .map(|&i| {

@@ -78,6 +78,11 @@ pub struct SolveOptions {
     /// lobes and the fast evaluator (the default; accurate for glossy materials), instead of
     /// their binned columns.
     pub rerank_fast: bool,
+    /// Geometry solver, stage 1 with light lobes: also rank every geometry by its
+    /// representatives' *binned columns* × X, and fill the pool from both rankings in turn
+    /// ([`interleave`]). The two estimates fail in different places (see
+    /// `docs/solvers.md`, "Two rankings"), so a geometry either ranks well is re-ranked.
+    pub binned_search: bool,
     /// Rotations tried by the geometry solver.
     pub psi: usize,
     /// Weight of the colour term (Eq. 13).
@@ -94,6 +99,7 @@ impl Default for SolveOptions {
             k: 5,
             pool: 0,
             rerank_fast: true,
+            binned_search: true,
             psi: 1,
             beta: 0.0,
             final_eval: Final::Exact,
@@ -255,6 +261,32 @@ pub fn smallest(errors: &[f64], n: usize) -> Vec<usize> {
     }
     idx.sort_by(order);
     idx
+}
+
+/// The first `n` distinct entries of the rankings `a` and `b` taken in turn (`a[0]`, `b[0]`,
+/// `a[1]`, …): the union of two rankings, each contributing its best, when neither can be
+/// trusted alone.
+pub fn interleave(a: &[usize], b: &[usize], n: usize) -> Vec<usize> {
+    let mut seen = std::collections::HashSet::with_capacity(2 * n);
+    let mut out = Vec::with_capacity(n);
+    let mut it = a.iter().zip(b).flat_map(|(x, y)| [*x, *y]).chain(
+        // the longer ranking's tail, when one is shorter
+        a.iter()
+            .skip(b.len())
+            .chain(b.iter().skip(a.len()))
+            .copied(),
+    );
+    while out.len() < n {
+        match it.next() {
+            Some(i) => {
+                if seen.insert(i) {
+                    out.push(i);
+                }
+            }
+            None => break,
+        }
+    }
+    out
 }
 
 /// Weighted `A X` errors for every item: `t` target values, `a` the representatives' values per
@@ -424,6 +456,18 @@ mod tests {
         want.sort_by(|&a, &b| big[a].total_cmp(&big[b]).then(a.cmp(&b)));
         want.truncate(300);
         assert_eq!(smallest(&big, 300), want);
+    }
+
+    #[test]
+    fn interleave_takes_both_rankings_in_turn_without_repeats() {
+        assert_eq!(
+            interleave(&[3, 1, 4, 5], &[1, 9, 2], 5),
+            vec![3, 1, 9, 4, 2]
+        );
+        // A shorter ranking runs out; the longer one fills the rest.
+        assert_eq!(interleave(&[7], &[8, 9, 10], 4), vec![7, 8, 9, 10]);
+        assert_eq!(interleave(&[1, 2], &[2, 1], 10), vec![1, 2]);
+        assert!(interleave(&[], &[], 3).is_empty());
     }
 
     #[test]
