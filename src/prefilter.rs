@@ -15,7 +15,7 @@
 
 use crate::frame::{frame_around, Vec3};
 use crate::material::Material;
-use crate::vmf::{Vmf, KAPPA_MAX};
+use crate::vmf::{vmf_norm, Vmf, KAPPA_MAX};
 use rayon::prelude::*;
 use std::f64::consts::{FRAC_PI_2, PI};
 
@@ -112,6 +112,65 @@ fn fib(k: usize, n: usize) -> (f64, f64) {
 
 /// `∫ f_r (n·wi)+ rho dn` by quadrature, for `wi`, `wo` in the frame where `h = z`.
 pub fn quadrature(mat: &Material, wi: Vec3, wo: Vec3, lobe: &Vmf, samples: usize) -> f64 {
+    let proxy = proxy_points(mat, wi, wo, lobe.kappa, samples);
+    quadrature_at(
+        mat,
+        wi,
+        wo,
+        lobe,
+        &local_points(lobe.kappa, samples),
+        proxy.as_ref(),
+    )
+}
+
+/// The Fibonacci points of a lobe of concentration `kappa`, in its own frame
+/// ([`Vmf::local_sample`]).
+fn local_points(kappa: f64, samples: usize) -> Vec<[f64; 3]> {
+    (0..samples)
+        .map(|k| {
+            let (u, v) = fib(k, samples);
+            Vmf::local_sample(kappa, u, v)
+        })
+        .collect()
+}
+
+/// When the material has a glossy lobe narrower than about twice a lobe of `kappa`, the
+/// quadrature's second strategy: a vMF of the material's width around the half vector, and its
+/// Fibonacci points. It depends on the directions and `kappa` only, not on the lobe's mean.
+fn proxy_points(
+    mat: &Material,
+    wi: Vec3,
+    wo: Vec3,
+    kappa: f64,
+    samples: usize,
+) -> Option<(Vmf, Vec<Vec3>)> {
+    let km = mat
+        .min_lobe_width()
+        .map(|a| (2.0 / (a * a)).min(KAPPA_MAX))?;
+    if km <= 0.5 * kappa {
+        return None;
+    }
+    let proxy = Vmf::new(km, (wi + wo).normalized());
+    let pts = (0..samples)
+        .map(|k| {
+            let (u, v) = fib(k, samples);
+            proxy.sample(u, v)
+        })
+        .collect();
+    Some((proxy, pts))
+}
+
+/// [`quadrature`] with the lobe's points in its own frame (`local`, from [`local_points`]) and
+/// the second strategy's points (`proxy`, from [`proxy_points`]) computed once for many lobes:
+/// with a proxy, the two strategies are combined with the balance heuristic.
+fn quadrature_at(
+    mat: &Material,
+    wi: Vec3,
+    wo: Vec3,
+    lobe: &Vmf,
+    local: &[[f64; 3]],
+    proxy: Option<&(Vmf, Vec<Vec3>)>,
+) -> f64 {
     let g = |n: Vec3| {
         let c = n.dot(wi);
         if c <= 0.0 {
@@ -120,32 +179,32 @@ pub fn quadrature(mat: &Material, wi: Vec3, wo: Vec3, lobe: &Vmf, samples: usize
             mat.eval(n, wi, wo) * c
         }
     };
-    let h = (wi + wo).normalized();
-    let narrow = mat.min_lobe_width().map(|a| (2.0 / (a * a)).min(KAPPA_MAX));
-    match narrow {
-        Some(km) if km > 0.5 * lobe.kappa => {
-            let proxy = Vmf::new(km, h);
-            let mut s = 0.0;
-            for k in 0..samples {
-                let (u, v) = fib(k, samples);
-                for n in [lobe.sample(u, v), proxy.sample(u, v)] {
-                    let den = lobe.eval(n) + proxy.eval(n);
+    let frame = frame_around(lobe.mu);
+    let mut s = 0.0;
+    match proxy {
+        Some((p, pts)) => {
+            // `Vmf::eval` with each lobe's normalisation computed once.
+            let (nl, np) = (vmf_norm(lobe.kappa), vmf_norm(p.kappa));
+            let dens = |v: &Vmf, norm: f64, n: Vec3| {
+                norm * (v.kappa * (n.dot(v.mu).clamp(-1.0, 1.0) - 1.0)).exp()
+            };
+            for (l, &q) in local.iter().zip(pts) {
+                for n in [Vmf::place(lobe.mu, frame, l), q] {
+                    let pl = dens(lobe, nl, n);
+                    let den = pl + dens(p, np, n);
                     if den > 0.0 {
-                        s += g(n) * lobe.eval(n) / den;
+                        s += g(n) * pl / den;
                     }
                 }
             }
-            s / samples as f64
         }
-        _ => {
-            let mut s = 0.0;
-            for k in 0..samples {
-                let (u, v) = fib(k, samples);
-                s += g(lobe.sample(u, v));
+        None => {
+            for l in local {
+                s += g(Vmf::place(lobe.mu, frame, l));
             }
-            s / samples as f64
         }
     }
+    s / local.len().max(1) as f64
 }
 
 impl Prefiltered {
@@ -159,12 +218,16 @@ impl Prefiltered {
                 let wi = Vec3::new(th.sin(), 0.0, th.cos());
                 let wo = Vec3::new(-th.sin(), 0.0, th.cos());
                 let kappa = KAPPAS[ik];
+                // The points of every entry of this (θh, kappa): computed once.
+                let local = local_points(Vmf::new(kappa, Vec3::Z).kappa, cfg.samples);
+                let proxy = proxy_points(mat, wi, wo, kappa, cfg.samples);
                 (0..nt * np).map(move |tp| {
                     let (it, ip) = (tp / np, tp % np);
                     let tm = Self::theta_mu_node(nt, it);
                     let pm = PI * ip as f64 / (np - 1) as f64;
                     let mu = Vec3::new(tm.sin() * pm.cos(), tm.sin() * pm.sin(), tm.cos());
-                    let v = quadrature(mat, wi, wo, &Vmf::new(kappa, mu), cfg.samples);
+                    let v =
+                        quadrature_at(mat, wi, wo, &Vmf::new(kappa, mu), &local, proxy.as_ref());
                     if v.is_finite() {
                         v as f32
                     } else {

@@ -57,11 +57,27 @@ impl Vmf {
 
     /// A direction distributed by this lobe for uniform `(u, v)` in `[0, 1)²`.
     pub fn sample(&self, u: f64, v: f64) -> Vec3 {
-        let w = Self::sample_cos(self.kappa, u);
+        Self::place(
+            self.mu,
+            frame_around(self.mu),
+            &Self::local_sample(self.kappa, u, v),
+        )
+    }
+
+    /// [`Vmf::sample`] in the lobe's own frame (`mu` along z): `[s cos φ, s sin φ, w]`. It
+    /// depends on `kappa` only, so a quadrature over many lobes of one `kappa` computes it once.
+    #[inline]
+    pub fn local_sample(kappa: f64, u: f64, v: f64) -> [f64; 3] {
+        let w = Self::sample_cos(kappa, u);
         let s = (1.0 - w * w).max(0.0).sqrt();
-        let (t, b) = frame_around(self.mu);
         let (sp, cp) = (TAU * v).sin_cos();
-        (t * (s * cp) + b * (s * sp) + self.mu * w).normalized()
+        [s * cp, s * sp, w]
+    }
+
+    /// A local sample placed around unit `mu` with `frame = frame_around(mu)`.
+    #[inline]
+    pub fn place(mu: Vec3, (t, b): (Vec3, Vec3), l: &[f64; 3]) -> Vec3 {
+        (t * l[0] + b * l[1] + mu * l[2]).normalized()
     }
 }
 
