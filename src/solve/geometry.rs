@@ -9,7 +9,8 @@
 //! model the weights were fitted to), and the pool of `pool` (geometry, rotation) pairs takes the
 //! best of both rankings in turn: where an item's large weights amplify the difference between
 //! light lobes and binned columns, the first ranking misses it and the second does not. The
-//! pool's pairs are re-ranked with their own light lobes, and the best `k` geometries — each
+//! pool's pairs are re-ranked with their own light lobes (a pool over [`COARSE_KEEP`] first at
+//! every [`COARSE_STEP`]-th sample, its best quarter then at all), and the best `k` geometries — each
 //! once, at its best rotation — evaluated with the fast or exact evaluator. With
 //! `rerank_fast = false` both stages use the binned columns instead (the material's
 //! [`Response`]), for comparison.
