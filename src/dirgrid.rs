@@ -15,6 +15,8 @@ pub struct DirGrid {
     /// Polar angles in radians, increasing, starting at 0.
     pub thetas: Vec<f64>,
     pub n_phi: usize,
+    /// Every node's direction, node-major (read for every lobe the fast evaluator assembles).
+    dirs: Vec<Vec3>,
 }
 
 impl DirGrid {
@@ -29,15 +31,22 @@ impl DirGrid {
         let n_theta = n_theta.max(2);
         let last = 88.5f64.to_radians();
         // theta = last · g(u), g(u) = sin(u pi/2)^0.75 spreads nodes towards the horizon.
-        let thetas = (0..n_theta)
+        let thetas: Vec<f64> = (0..n_theta)
             .map(|i| {
                 let u = i as f64 / (n_theta - 1) as f64;
                 last * (u * std::f64::consts::FRAC_PI_2).sin().powf(0.75)
             })
             .collect();
+        let n_phi = n_phi.max(3);
+        let phi = |j: usize| j as f64 * TAU / n_phi as f64;
+        let dirs = thetas
+            .iter()
+            .flat_map(|&t| (0..n_phi).map(move |j| dir_from_rad(t, phi(j))))
+            .collect();
         DirGrid {
             thetas,
-            n_phi: n_phi.max(3),
+            n_phi,
+            dirs,
         }
     }
 
@@ -55,10 +64,9 @@ impl DirGrid {
         it * self.n_phi + jp
     }
 
+    #[inline]
     pub fn direction(&self, node: usize) -> Vec3 {
-        let it = node / self.n_phi;
-        let jp = node % self.n_phi;
-        dir_from_rad(self.thetas[it], self.phi(jp))
+        self.dirs[node]
     }
 
     pub fn phi(&self, jp: usize) -> f64 {

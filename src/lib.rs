@@ -4,6 +4,7 @@
 //! `docs/architecture.md` for the modules and how data flows between them.
 
 pub mod error;
+pub mod fastmath;
 pub mod frame;
 pub mod rng;
 

@@ -440,9 +440,9 @@ fn local_coords(cfg: &PrefilterConfig, th: f64, kappa: f64, mu: Vec3) -> TableCo
         ik += 1;
     }
     let wk = ((lk - lkn[ik]) / (lkn[ik + 1] - lkn[ik])).clamp(0.0, 1.0);
-    let tm = mu.z.clamp(-1.0, 1.0).acos();
+    let tm = crate::fastmath::acos(mu.z);
     let ft = ((tm / PI).sqrt() * (nt - 1) as f64).clamp(0.0, (nt - 1) as f64);
-    let pm = mu.y.abs().atan2(mu.x);
+    let pm = crate::fastmath::atan2_upper(mu.y.abs(), mu.x);
     let fp = (pm / PI * (np - 1) as f64).clamp(0.0, (np - 1) as f64);
     let split = |f: f64, n: usize| {
         let i = (f.floor() as usize).min(n - 2);

@@ -18,8 +18,8 @@
 use super::joint::RepPairs;
 use super::{
     bvndf_of, exact_values, fast_values, interleave, library_heightfield, material_prefiltered,
-    psi_angle, rescore_share, rotated_samples, search_errors, smallest, Candidate, Final, Look,
-    SolveOptions, SolveResult, SolveStats,
+    psi_angle, rescore_share, rotated_samples, search_errors_multi, smallest, Candidate, Final,
+    Look, SolveOptions, SolveResult, SolveStats,
 };
 use crate::error::Result;
 use crate::gamma::Response;
@@ -53,20 +53,6 @@ enum ItemData {
 }
 
 impl ItemData {
-    /// `fbar` of library geometry `j` at every rotation's samples (its record read once).
-    fn values_at(&self, j: usize, rots: &[Rotation]) -> Result<Vec<Vec<f64>>> {
-        match self {
-            ItemData::Lobes { lobes, pf } => {
-                let l = lobes.get(j)?;
-                Ok(rots
-                    .iter()
-                    .map(|r| fast_values(&l, pf, &r.samples))
-                    .collect())
-            }
-            ItemData::Binned { .. } => rots.iter().map(|r| self.values(j, r)).collect(),
-        }
-    }
-
     /// `fbar` of library geometry `j` at rotation `r`'s samples.
     fn values(&self, j: usize, r: &Rotation) -> Result<Vec<f64>> {
         match (self, &r.response) {
@@ -110,8 +96,9 @@ pub fn solve(
 }
 
 /// [`solve`], with the representatives' values taken from a joint search's representative pairs
-/// when the material is a library material and `reps_values` holds every rotation (stage 1 then
-/// evaluates nothing; stages 2 and 3 use the material's own table as always).
+/// when the material is a library material (stage 1 then evaluates nothing; stages 2 and 3 use
+/// the material's own table as always). The joint search's shared samples are rotation 0's, as
+/// stage 1's here, when both use the same sampling settings.
 pub fn solve_with(
     lib: &Library,
     look: &Look,
@@ -157,36 +144,46 @@ pub fn solve_with(
             }
         })
         .collect();
-    // Stage 1: representatives' `fbar` × X for every geometry and rotation (Eq. 12).
-    let mut scored: Vec<(f64, usize, usize)> = Vec::new();
+    // Stage 1: representatives' `fbar` × X for every geometry and rotation (Eq. 12), every
+    // rotation compared at one shared sample set, rotation 0's: the representatives' values,
+    // the material's response and each item's Gram term are then computed once, and a
+    // rotation adds only its target values and one dot product per item. Stage 2 compares
+    // at each rotation's own samples.
+    let shared = &rots[0].samples;
+    let targets: Vec<Vec<f64>> = rots
+        .iter()
+        .enumerate()
+        .map(|(ri, r)| {
+            if ri == 0 {
+                r.target.clone()
+            } else {
+                shared.values(&look.as_fn(), r.psi)
+            }
+        })
+        .collect();
     let pool_size = opt.pool_for(items.len());
     let rescore = rescore_share(rots.len(), pool_size);
-    // The representatives' values at every rotation: from the joint search's representative
-    // pairs when given, else evaluated representative by representative, all rotations of one
-    // representative together (its record is read once and stays in cache).
-    let per_rotation: Vec<Vec<Vec<f64>>> = match (reps_values, material_index, &data) {
-        (Some(rp), Some(m), ItemData::Lobes { .. }) if rp.rotations() == rots.len() => (0..rots
-            .len())
-            .map(|ri| rp.values(ri, m))
-            .collect::<Option<_>>()
-            .unwrap_or_default(),
-        _ => Vec::new(),
-    };
-    let per_rotation = if per_rotation.len() == rots.len() {
-        per_rotation
-    } else {
-        let by_rep: Vec<Vec<Vec<f64>>> = reps
-            .par_iter()
-            .map(|&k| data.values_at(k as usize, &rots))
-            .collect::<Result<_>>()?;
-        (0..rots.len())
-            .map(|ri| by_rep.iter().map(|v| v[ri].clone()).collect())
-            .collect()
-    };
-    for ((ri, r), a) in rots.iter().enumerate().zip(&per_rotation) {
-        let e = search_errors(&r.samples, &r.target, a, xs, items.len(), rescore);
-        scored.extend(e.into_iter().enumerate().map(|(j, e)| (e, j, ri)));
+    // The representatives' values at the shared samples: from the joint search's
+    // representative pairs when given, else evaluated representative by representative.
+    let a: Vec<Vec<f64>> = match (reps_values, material_index, &data) {
+        (Some(rp), Some(m), ItemData::Lobes { .. }) => rp.values(m),
+        _ => None,
     }
+    .map_or_else(
+        || {
+            reps.par_iter()
+                .map(|&k| data.values(k as usize, &rots[0]))
+                .collect::<Result<Vec<_>>>()
+        },
+        Ok,
+    )?;
+    // `[(error, item, rotation)]`, rotation-major.
+    let scored: Vec<(f64, usize, usize)> =
+        search_errors_multi(shared, &targets, &a, xs, items.len(), rescore)
+            .into_iter()
+            .enumerate()
+            .flat_map(|(ri, e)| e.into_iter().enumerate().map(move |(j, e)| (e, j, ri)))
+            .collect();
     let errs: Vec<f64> = scored.iter().map(|s| s.0).collect();
     let by_lobes = smallest(&errs, pool_size);
     // The second ranking: the representatives' binned columns with the material's response,
@@ -195,32 +192,23 @@ pub fn solve_with(
         (ItemData::Lobes { pf, .. }, true) => {
             let gamma = lib.array("geometry/gamma.bsa")?;
             let (g16, rows) = (gamma.f16s()?, layout.rows());
-            let mut binned = Vec::with_capacity(errs.len());
-            for r in &rots {
-                let resp = Response::with_table(&layout, material, pf, &r.samples.pairs);
-                let a: Vec<Vec<f64>> = reps
-                    .par_iter()
-                    .map(|&k| {
-                        let k = k as usize;
-                        g16.get(k * rows..(k + 1) * rows)
-                            .map(|c| resp.apply(c))
-                            .ok_or_else(|| {
-                                crate::error::Error::new(
-                                    gamma.path.display().to_string(),
-                                    format!("no column for representative {k}"),
-                                )
-                            })
-                    })
-                    .collect::<Result<_>>()?;
-                binned.extend(search_errors(
-                    &r.samples,
-                    &r.target,
-                    &a,
-                    xs,
-                    items.len(),
-                    rescore,
-                ));
-            }
+            let resp = Response::with_table(&layout, material, pf, &shared.pairs);
+            let a: Vec<Vec<f64>> = reps
+                .par_iter()
+                .map(|&k| {
+                    let k = k as usize;
+                    g16.get(k * rows..(k + 1) * rows)
+                        .map(|c| resp.apply(c))
+                        .ok_or_else(|| {
+                            crate::error::Error::new(
+                                gamma.path.display().to_string(),
+                                format!("no column for representative {k}"),
+                            )
+                        })
+                })
+                .collect::<Result<_>>()?;
+            let binned: Vec<f64> =
+                search_errors_multi(shared, &targets, &a, xs, items.len(), rescore).concat();
             interleave(&by_lobes, &smallest(&binned, pool_size), pool_size)
         }
         _ => by_lobes,

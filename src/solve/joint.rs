@@ -10,11 +10,13 @@
 //! representatives); with sample weights `w`, the weighted error of material `m` is
 //! `y_mᵀ Q_g y_m - 2 y_mᵀ b_g + |t|²` with `Q_g = P_g W P_gᵀ` and `b_g = P_g W t`.
 //!
-//! The scan is three dense products per block of geometries: the `R·S` weighted sample vectors
+//! The scan is dense products per block of geometries: the `R·S` weighted sample vectors
 //! `fbar(rep_r, rep_s)` are first projected on their leading row-space basis (`d` of the
 //! `samples` dimensions), so `P_g` for a block is `X_block · R̃` (f32); each geometry's `Q_g` and
-//! `b_g` are then written as one row `V_g = [Q_ac (a <= c), -2 b_a]`, and every material's error
-//! at once is `V · Uᵀ + |t|²` with `U_m = [y_a y_c, y_a]` (f64). On paper16 (10,277 geometries
+//! `b_g` are then written as rows `Vq_g = [Q_ac (a <= c)]` and `Vl_g = [-2 b_a]`, and every
+//! material's error at once is `Vq · Uqᵀ + Vl · Ulᵀ + |t|²` with `Uq_m = [y_a y_c]`,
+//! `Ul_m = [y_a]` (f64). Every rotation of the target is scanned at one shared sample set
+//! (rotation 0's), so only `Vl` and the last product are per rotation. On paper16 (10,277 geometries
 //! × 260 materials) this is about 4× faster than one loop per geometry (docs/solvers.md gives
 //! the measurement).
 
@@ -41,32 +43,27 @@ pub struct Pair {
     pub rotation: usize,
 }
 
-/// `fbar(rep_r, rep_s)` of every (geometry representative, material representative) pair at each
-/// rotation's samples, as the joint search computed them. A library material's values on the
-/// geometry representatives follow from its CX weights `y` (Eq. 12 on the material side):
-/// `fbar(rep_r, m) ≈ Σ_s y[s] fbar(rep_r, rep_s)`, so the geometry solves of the alternation
-/// need not evaluate the representatives again.
+/// `fbar(rep_r, rep_s)` of every (geometry representative, material representative) pair at
+/// the shared samples of the joint search (rotation 0's, which every rotation is scanned at). A
+/// library material's values on the geometry representatives follow from its CX weights `y`
+/// (Eq. 12 on the material side): `fbar(rep_r, m) ≈ Σ_s y[s] fbar(rep_r, rep_s)`, so the geometry
+/// solves of the alternation need not evaluate the representatives again.
 pub struct RepPairs {
-    /// `[rotation][r][s][sample]`.
-    rr: Vec<Vec<Vec<Vec<f64>>>>,
+    /// `[r][s][sample]`.
+    rr: Vec<Vec<Vec<f64>>>,
     /// The material library's CX weights, `ks` per material.
     mx: Vec<f32>,
     ks: usize,
 }
 
 impl RepPairs {
-    /// Rotations held (the joint search's `psi`).
-    pub fn rotations(&self) -> usize {
-        self.rr.len()
-    }
-
-    /// `fbar(rep_r, material)` at rotation `ri`'s samples, `[r][sample]`; `None` when the
-    /// rotation or the material is not held.
-    pub fn values(&self, ri: usize, material: usize) -> Option<Vec<Vec<f64>>> {
-        let rr = self.rr.get(ri)?;
+    /// `fbar(rep_r, material)` at the shared samples, `[r][sample]`; `None` when the material is
+    /// not held.
+    pub fn values(&self, material: usize) -> Option<Vec<Vec<f64>>> {
         let y = self.mx.get(material * self.ks..(material + 1) * self.ks)?;
         Some(
-            rr.iter()
+            self.rr
+                .iter()
                 .map(|per_s| {
                     let np = per_s.first().map_or(0, Vec::len);
                     let mut v = vec![0.0; np];
@@ -161,44 +158,57 @@ pub fn search(
             rotated_samples(look, &layout.lights, psi, &opt.sampling)
         })
         .collect();
-    // Each scanned material's side of the quadratic form: [y_a y_c (×2 off the diagonal), y_a].
-    let nq = ks * (ks + 1) / 2 + ks;
-    let u = Mat::<f64>::from_fn(materials.len(), nq, |k, j| {
-        let y = &mx[materials[k] * ks..(materials[k] + 1) * ks];
-        upper_term(y, ks, j)
-    });
+    // Each scanned material's side of the quadratic form: the products y_a y_c (×2 off the
+    // diagonal), and y_a.
+    let nqq = ks * (ks + 1) / 2;
+    let y_of = |k: usize| &mx[materials[k] * ks..(materials[k] + 1) * ks];
+    let uq = Mat::<f64>::from_fn(materials.len(), nqq, |k, j| upper_term(y_of(k), ks, j));
+    let ul = Mat::<f64>::from_fn(materials.len(), ks, |k, j| y_of(k)[j] as f64);
     let mut kept: Vec<Pair> = Vec::new();
-    let mut rep_pairs = RepPairs {
-        rr: Vec::new(),
+    // Every rotation is scanned at one shared sample set, rotation 0's (as the geometry solver's
+    // stage 1): the representative pairs, their basis and each geometry's quadratic form do not
+    // depend on the target, so only the linear term is computed per rotation. Stage 2 below
+    // compares each pair at its rotation's own samples.
+    let (s0, t0) = &rots[0];
+    let pairs = super::dir_pairs(s0);
+    let np = pairs.len();
+    // fbar(rep_r, rep_s) at the samples: [r][s][p].
+    let rr: Vec<Vec<Vec<f64>>> = greps
+        .par_iter()
+        .map(|&r| {
+            let fixed = FixedLobes::new(&lobes.get(r as usize)?, &pairs);
+            Ok(rep_tables.iter().map(|pf| fixed.fbar(pf)).collect())
+        })
+        .collect::<Result<_>>()?;
+    let rep_pairs = RepPairs {
+        rr,
         mx: mx.to_vec(),
         ks,
     };
-    for (ri, (s, t)) in rots.iter().enumerate() {
-        let pairs = super::dir_pairs(s);
-        let np = pairs.len();
-        // fbar(rep_r, rep_s) at the samples: [r][s][p].
-        let rr: Vec<Vec<Vec<f64>>> = greps
-            .par_iter()
-            .map(|&r| {
-                let fixed = FixedLobes::new(&lobes.get(r as usize)?, &pairs);
-                Ok(rep_tables.iter().map(|pf| fixed.fbar(pf)).collect())
-            })
-            .collect::<Result<_>>()?;
-        rep_pairs.rr.push(rr);
-        let rr = &rep_pairs.rr[ri];
-        let tw: Vec<f64> = t.iter().zip(&s.weights).map(|(t, w)| t * w).collect();
-        let n2: f64 = tw.iter().map(|v| v * v).sum();
-        if !(n2 > 0.0) {
-            continue;
-        }
-        // Every pair's weighted values are a combination of the kr·ks rows rr[r][s]: project
-        // them on their row space's leading basis (d ≪ np dimensions), so the scan below runs
-        // in d dimensions. The target's part outside the basis only adds a constant.
-        let rows = Mat::from_fn(kr * ks, np, |i, p| rr[i / ks][i % ks][p] * s.weights[p]);
-        let basis = match crate::lowrank::row_basis(rows.clone(), BASIS_ENERGY) {
-            Ok(b) => b,
-            Err(_) => continue, // every representative is black at these samples
-        };
+    let rr = &rep_pairs.rr;
+    // The weighted targets of the rotations worth scanning (a black target has no error scale).
+    let f = look.as_fn();
+    let targets: Vec<(usize, Vec<f64>, f64)> = (0..rots.len())
+        .filter_map(|ri| {
+            let t = if ri == 0 {
+                t0.clone()
+            } else {
+                s0.values(&f, super::psi_angle(ri, opt.psi))
+            };
+            let tw: Vec<f64> = t.iter().zip(&s0.weights).map(|(t, w)| t * w).collect();
+            let n2: f64 = tw.iter().map(|v| v * v).sum();
+            (n2 > 0.0).then_some((ri, tw, n2))
+        })
+        .collect();
+    // Every pair's weighted values are a combination of the kr·ks rows rr[r][s]: project them on
+    // their row space's leading basis (d ≪ np dimensions), so the scan below runs in d
+    // dimensions. A target's part outside the basis only adds a constant.
+    let rows = Mat::from_fn(kr * ks, np, |i, p| rr[i / ks][i % ks][p] * s0.weights[p]);
+    // Err: every representative is black at these samples; nothing to scan.
+    if let (Ok(basis), false) = (
+        crate::lowrank::row_basis(rows.clone(), BASIS_ENERGY),
+        targets.is_empty(),
+    ) {
         let d = basis.ncols();
         // The rows in the basis, (kr·ks) × d; then [r][s·d + k]: representative r's
         // material-representative rows. In f32, the CX weights' own precision (twice the f64
@@ -206,8 +216,13 @@ pub fn search(
         // and stage 2 rescoring is in f64.
         let reduced = &rows * &basis;
         let rt = Mat::<f32>::from_fn(kr, ks * d, |r, j| reduced[(r * ks + j / d, j % d)] as f32);
-        let twr: Vec<f32> = (0..d)
-            .map(|k| (0..np).map(|p| basis[(p, k)] * tw[p]).sum::<f64>() as f32)
+        let twrs: Vec<Vec<f32>> = targets
+            .iter()
+            .map(|(_, tw, _)| {
+                (0..d)
+                    .map(|k| (0..np).map(|p| basis[(p, k)] * tw[p]).sum::<f64>() as f32)
+                    .collect()
+            })
             .collect();
         let blocks: Vec<std::ops::Range<usize>> = (0..gitems)
             .step_by(GEOMETRY_BLOCK)
@@ -227,51 +242,59 @@ pub fn search(
                     1.0,
                     faer::Par::Seq,
                 );
-                // Each geometry's quadratic form in the materials' coordinates, as one row:
-                // [Q_ac (a <= c), -2 b_a]; then every material's error at once, E = V Uᵀ + |t|².
-                let mut v = Mat::<f64>::zeros(gs.len(), nq);
-                for i in 0..gs.len() {
-                    let row = p.row(i);
-                    let pg = |a: usize| -> Vec<f32> { (0..d).map(|k| row[a * d + k]).collect() };
-                    let pgs: Vec<Vec<f32>> = (0..ks).map(pg).collect();
-                    let mut col = 0;
-                    for a in 0..ks {
-                        for c in a..ks {
-                            v[(i, col)] = dot(&pgs[a], &pgs[c]);
-                            col += 1;
-                        }
-                    }
-                    for pa in &pgs {
-                        v[(i, col)] = -2.0 * dot(pa, &twr);
-                        col += 1;
-                    }
-                }
-                let mut e = Mat::<f64>::zeros(gs.len(), materials.len());
+                // Each geometry's quadratic form in the materials' coordinates, as rows:
+                // [Q_ac (a <= c)] once, [-2 b_a] per rotation; then every material's error
+                // at once, E = Vq Uqᵀ + Vl Ulᵀ + |t|².
+                let pgs: Vec<Vec<Vec<f32>>> = (0..gs.len())
+                    .map(|i| {
+                        let row = p.row(i);
+                        (0..ks)
+                            .map(|a| (0..d).map(|k| row[a * d + k]).collect())
+                            .collect()
+                    })
+                    .collect();
+                let vq = Mat::<f64>::from_fn(gs.len(), nqq, |i, j| {
+                    let (a, c) = upper_pair(ks, j);
+                    dot(&pgs[i][a], &pgs[i][c])
+                });
+                let mut eq = Mat::<f64>::zeros(gs.len(), materials.len());
                 faer::linalg::matmul::matmul(
-                    e.as_mut(),
+                    eq.as_mut(),
                     faer::Accum::Replace,
-                    v.as_ref(),
-                    u.as_ref().transpose(),
+                    vq.as_ref(),
+                    uq.as_ref().transpose(),
                     1.0,
                     faer::Par::Seq,
                 );
-                let mut out = Vec::with_capacity(gs.len() * KEEP_PER_GEOMETRY);
+                let mut out = Vec::with_capacity(gs.len() * KEEP_PER_GEOMETRY * targets.len());
                 let mut errs = vec![0.0f64; materials.len()];
-                for (i, g) in gs.clone().enumerate() {
-                    for (k, err) in errs.iter_mut().enumerate() {
-                        *err = ((n2 + e[(i, k)]).max(0.0) / n2).sqrt();
-                    }
-                    out.extend(
-                        smallest(&errs, KEEP_PER_GEOMETRY)
-                            .into_iter()
-                            .map(|k| Pair {
-                                error: errs[k],
-                                search_error: errs[k],
-                                geometry: g,
-                                material: materials[k],
-                                rotation: ri,
-                            }),
+                for ((ri, _, n2), twr) in targets.iter().zip(&twrs) {
+                    let vl = Mat::<f64>::from_fn(gs.len(), ks, |i, a| -2.0 * dot(&pgs[i][a], twr));
+                    let mut e = eq.clone();
+                    faer::linalg::matmul::matmul(
+                        e.as_mut(),
+                        faer::Accum::Add,
+                        vl.as_ref(),
+                        ul.as_ref().transpose(),
+                        1.0,
+                        faer::Par::Seq,
                     );
+                    for (i, g) in gs.clone().enumerate() {
+                        for (k, err) in errs.iter_mut().enumerate() {
+                            *err = ((n2 + e[(i, k)]).max(0.0) / n2).sqrt();
+                        }
+                        out.extend(
+                            smallest(&errs, KEEP_PER_GEOMETRY)
+                                .into_iter()
+                                .map(|k| Pair {
+                                    error: errs[k],
+                                    search_error: errs[k],
+                                    geometry: g,
+                                    material: materials[k],
+                                    rotation: *ri,
+                                }),
+                        );
+                    }
                 }
                 out
             })
@@ -356,6 +379,18 @@ fn upper_term(y: &[f32], ks: usize, j: usize) -> f64 {
     y[j - col] as f64
 }
 
+/// The `(a, c)`, `a <= c`, of entry `j` of the upper triangle of a `ks × ks` matrix, row-major.
+fn upper_pair(ks: usize, j: usize) -> (usize, usize) {
+    let mut col = 0;
+    for a in 0..ks {
+        if j < col + ks - a {
+            return (a, a + j - col);
+        }
+        col += ks - a;
+    }
+    (ks - 1, ks - 1)
+}
+
 /// `a · b` in f32 with eight running sums (vectorises), returned in f64.
 fn dot(a: &[f32], b: &[f32]) -> f64 {
     let mut acc = [0.0f32; 8];
@@ -407,4 +442,22 @@ pub fn candidates(
             }
         })
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn upper_pair_walks_the_upper_triangle_as_upper_term_does() {
+        let ks = 5;
+        // y = powers of two: y_a y_c identifies (a, c).
+        let y: Vec<f32> = (0..ks).map(|a| (1u32 << a) as f32).collect();
+        for j in 0..ks * (ks + 1) / 2 {
+            let (a, c) = upper_pair(ks, j);
+            assert!(a <= c && c < ks);
+            let f = if a == c { 1.0 } else { 2.0 };
+            assert_eq!(upper_term(&y, ks, j), f * (y[a] * y[c]) as f64, "entry {j}");
+        }
+    }
 }

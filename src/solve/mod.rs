@@ -311,16 +311,42 @@ pub fn search_errors(
     items: usize,
     rescore: usize,
 ) -> Vec<f64> {
+    search_errors_multi(s, std::slice::from_ref(&t.to_vec()), a, x, items, rescore)
+        .pop()
+        .unwrap_or_default()
+}
+
+/// [`search_errors`] for several targets at the same samples (one per rotation of the target,
+/// read at one shared sample set): `[target][item]`. Everything that does not depend on the
+/// target is computed once — the Gram matrix, each item's quadratic term `xᵀ Q x`, and the
+/// reconstruction `A x` of every rescored item — so `T` targets cost little more than one. Each
+/// target's best `rescore` (by the Gram form) are rescored, and every item rescored for one
+/// target gets its clamped error for all; a library of at most `rescore × T` items gets the
+/// clamped error everywhere.
+pub fn search_errors_multi(
+    s: &Samples,
+    ts: &[Vec<f64>],
+    a: &[Vec<f64>],
+    x: &[f32],
+    items: usize,
+    rescore: usize,
+) -> Vec<Vec<f64>> {
     use faer::Mat;
     use rayon::prelude::*;
-    let (np, c) = (t.len(), a.len());
+    let (np, c) = (s.weights.len(), a.len());
     if c == 0 {
-        return vec![f64::INFINITY; items];
+        return vec![vec![f64::INFINITY; items]; ts.len()];
     }
     let aw = Mat::<f64>::from_fn(np, c, |p, k| a[k][p] * s.weights[p]);
-    let tw: Vec<f64> = t.iter().zip(&s.weights).map(|(t, w)| t * w).collect();
-    let n2: f64 = tw.iter().map(|v| v * v).sum();
-    let rel = |d2: f64| {
+    let tws: Vec<Vec<f64>> = ts
+        .iter()
+        .map(|t| t.iter().zip(&s.weights).map(|(t, w)| t * w).collect())
+        .collect();
+    let n2s: Vec<f64> = tws
+        .iter()
+        .map(|tw| tw.iter().map(|v| v * v).sum())
+        .collect();
+    let rel = |n2: f64, d2: f64| {
         if n2 > 0.0 {
             (d2.max(0.0) / n2).sqrt()
         } else {
@@ -333,8 +359,9 @@ pub fn search_errors(
             .map(|j0| (j0, (j0 + SEARCH_BLOCK).min(n)))
             .collect()
     };
-    // The clamped error of the items `ids` (all items when `None`).
-    let clamped = |ids: Option<&[usize]>| -> Vec<f64> {
+    // The clamped error of the items `ids` (all items when `None`) for every target,
+    // `[item][target]`: one reconstruction per item serves all targets.
+    let clamped = |ids: Option<&[usize]>| -> Vec<Vec<f64>> {
         let n = ids.map_or(items, |v| v.len());
         let item = |j: usize| ids.map_or(j, |v| v[j]);
         blocks(n)
@@ -342,52 +369,77 @@ pub fn search_errors(
             .flat_map_iter(|&(j0, j1)| {
                 let xm = Mat::<f64>::from_fn(c, j1 - j0, |k, j| x[item(j0 + j) * c + k] as f64);
                 let prod = &aw * &xm;
-                let tw = &tw;
+                let (tws, n2s) = (&tws, &n2s);
                 (0..j1 - j0)
                     .map(move |j| {
-                        let mut d = 0.0;
-                        for (p, tp) in tw.iter().enumerate() {
-                            let e = tp - prod[(p, j)].max(0.0);
-                            d += e * e;
-                        }
-                        rel(d)
+                        tws.iter()
+                            .zip(n2s)
+                            .map(|(tw, &n2)| {
+                                let mut d = 0.0;
+                                for (p, tp) in tw.iter().enumerate() {
+                                    let e = tp - prod[(p, j)].max(0.0);
+                                    d += e * e;
+                                }
+                                rel(n2, d)
+                            })
+                            .collect::<Vec<f64>>()
                     })
                     .collect::<Vec<_>>()
             })
             .collect()
     };
-    if items <= rescore {
-        return clamped(None);
+    let transpose = |by_item: Vec<Vec<f64>>| -> Vec<Vec<f64>> {
+        (0..ts.len())
+            .map(|ti| by_item.iter().map(|e| e[ti]).collect())
+            .collect()
+    };
+    if items <= rescore.saturating_mul(ts.len()) {
+        return transpose(clamped(None));
     }
     // The Gram product runs in f32, the weights' own precision (twice the f64 rate); its
     // rounding only decides which items are rescored, in f64, below.
     let q = aw.transpose() * &aw;
     let q = Mat::<f32>::from_fn(c, c, |i, j| q[(i, j)] as f32);
-    let bvec: Vec<f64> = (0..c)
-        .map(|k| (0..np).map(|p| aw[(p, k)] * tw[p]).sum())
+    let bvecs: Vec<Vec<f64>> = tws
+        .iter()
+        .map(|tw| {
+            (0..c)
+                .map(|k| (0..np).map(|p| aw[(p, k)] * tw[p]).sum())
+                .collect()
+        })
         .collect();
-    let mut errors: Vec<f64> = blocks(items)
+    let by_item: Vec<Vec<f64>> = blocks(items)
         .par_iter()
         .flat_map_iter(|&(j0, j1)| {
             let xm = Mat::<f32>::from_fn(c, j1 - j0, |k, j| x[(j0 + j) * c + k]);
             let qx = &q * &xm;
-            let bvec = &bvec;
+            let (bvecs, n2s) = (&bvecs, &n2s);
             (0..j1 - j0)
                 .map(move |j| {
-                    let (mut quad, mut lin) = (0.0, 0.0);
+                    let mut quad = 0.0;
                     for k in 0..c {
-                        let xk = xm[(k, j)] as f64;
-                        quad += xk * qx[(k, j)] as f64;
-                        lin += xk * bvec[k];
+                        quad += xm[(k, j)] as f64 * qx[(k, j)] as f64;
                     }
-                    rel(n2 - 2.0 * lin + quad)
+                    bvecs
+                        .iter()
+                        .zip(n2s)
+                        .map(|(b, &n2)| {
+                            let lin: f64 = (0..c).map(|k| xm[(k, j)] as f64 * b[k]).sum();
+                            rel(n2, n2 - 2.0 * lin + quad)
+                        })
+                        .collect::<Vec<f64>>()
                 })
                 .collect::<Vec<_>>()
         })
         .collect();
-    let best = smallest(&errors, rescore);
+    let mut errors = transpose(by_item);
+    let mut best: Vec<usize> = errors.iter().flat_map(|e| smallest(e, rescore)).collect();
+    best.sort_unstable();
+    best.dedup();
     for (j, e) in best.iter().zip(clamped(Some(&best))) {
-        errors[*j] = e;
+        for (ti, v) in e.into_iter().enumerate() {
+            errors[ti][*j] = v;
+        }
     }
     errors
 }
@@ -468,6 +520,48 @@ mod tests {
         assert_eq!(interleave(&[7], &[8, 9, 10], 4), vec![7, 8, 9, 10]);
         assert_eq!(interleave(&[1, 2], &[2, 1], 10), vec![1, 2]);
         assert!(interleave(&[], &[], 3).is_empty());
+    }
+
+    #[test]
+    fn search_errors_multi_serves_every_target_as_a_search_of_its_own_would() {
+        let mut rng = crate::rng::Rng::new(5);
+        let (np, c) = (16, 4);
+        let s = Samples {
+            pairs: (0..np).map(|_| (0, Vec3::Z)).collect(),
+            lights: vec![Vec3::Z],
+            weights: (0..np).map(|_| rng.range(0.5, 2.0)).collect(),
+        };
+        let ts: Vec<Vec<f64>> = (0..3)
+            .map(|_| (0..np).map(|_| rng.uniform()).collect())
+            .collect();
+        let a: Vec<Vec<f64>> = (0..c)
+            .map(|_| (0..np).map(|_| rng.uniform()).collect())
+            .collect();
+        let items = SEARCH_BLOCK + 11;
+        let x: Vec<f32> = (0..items * c)
+            .map(|_| rng.range(-0.5, 1.0) as f32)
+            .collect();
+        // Small budget: Gram bounds, each target's best rescored, rescored items exact for all.
+        let rescore = 100;
+        let multi = search_errors_multi(&s, &ts, &a, &x, items, rescore);
+        assert_eq!(multi.len(), ts.len());
+        for (t, m) in ts.iter().zip(&multi) {
+            let one = search_errors(&s, t, &a, &x, items, rescore);
+            for j in 0..items {
+                // Never above its own search's value (up to the f32 Gram bound's rounding);
+                // equal wherever that search rescored.
+                assert!(m[j] <= one[j] + 1e-5, "item {j}: {} > {}", m[j], one[j]);
+            }
+            for j in smallest(&one, rescore) {
+                assert!((m[j] - one[j]).abs() < 1e-12, "item {j}");
+            }
+        }
+        // A budget covering the library: clamped everywhere, as one search of each.
+        let all = search_errors_multi(&s, &ts, &a, &x, 200, 100);
+        for (t, m) in ts.iter().zip(&all) {
+            let one = search_errors(&s, t, &a, &x, 200, 200);
+            assert!(m.iter().zip(&one).all(|(p, q)| (p - q).abs() < 1e-12));
+        }
     }
 
     #[test]
