@@ -80,6 +80,14 @@ enum Cmd {
         /// cluster, as the libraries store; faster, less accurate on rough surfaces).
         #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
         sub_lobes: u16,
+        /// Fast method: azimuths of the compact BVNDF's direction grid (the libraries' grid; 32
+        /// is more accurate at grazing angles along grooves, for a build about 4× longer).
+        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(3..=128))]
+        n_phi: u16,
+        /// Fast method: view rays per grid direction of the compact BVNDF's build (the
+        /// libraries'; 4096 is less noisy on rough surfaces, for a build about 4× longer).
+        #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(16..=1_048_576))]
+        rays: u32,
         /// No progress log on standard error.
         #[arg(long, short = 'q')]
         quiet: bool,
@@ -327,6 +335,18 @@ enum BenchCmd {
         /// Sub-lobes per curved cluster of the fast method (1: one vMF per cluster).
         #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
         sub_lobes: u16,
+        /// Polar nodes of the compact BVNDF's direction grid.
+        #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u16).range(2..=64))]
+        n_theta: u16,
+        /// Azimuths of the compact BVNDF's direction grid.
+        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(3..=128))]
+        n_phi: u16,
+        /// View rays per grid direction of the compact BVNDF's build.
+        #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(16..=1_048_576))]
+        rays: u32,
+        /// Normal clusters of the compact BVNDF.
+        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
+        clusters: u16,
     },
 }
 
@@ -379,6 +399,8 @@ fn main() -> ExitCode {
             exact_samples,
             lobes,
             sub_lobes,
+            n_phi,
+            rays,
             quiet,
         } => {
             let to_stdout = out.is_none();
@@ -397,6 +419,8 @@ fn main() -> ExitCode {
                 bvndf: BvndfConfig {
                     clusters: lobes as usize,
                     sub_lobes: sub_lobes as usize,
+                    n_phi: n_phi as usize,
+                    rays: rays as usize,
                     ..BvndfConfig::default()
                 },
                 quiet,
@@ -600,8 +624,20 @@ fn main() -> ExitCode {
                 cases,
                 seed,
                 sub_lobes,
-            } => biscale::bench::accuracy(cases.max(1), seed, sub_lobes as usize)
-                .map(|t| print!("{t}")),
+                n_theta,
+                n_phi,
+                rays,
+                clusters,
+            } => {
+                let cfg = biscale::bvndf::BvndfConfig {
+                    n_theta: n_theta as usize,
+                    n_phi: n_phi as usize,
+                    clusters: clusters as usize,
+                    rays: rays as usize,
+                    sub_lobes: sub_lobes as usize,
+                };
+                biscale::bench::accuracy(cases.max(1), seed, &cfg).map(|t| print!("{t}"))
+            }
         },
     };
     match result {

@@ -355,3 +355,40 @@ fn npy_heightmap_is_scale_free() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The fast method's build settings are the user's: `--n-phi` and `--rays` reach the compact
+/// BVNDF (its log names the grid's directions), and a finer grid changes the answer only a
+/// little (both are estimates of the same fbar).
+#[test]
+fn fast_build_settings_reach_the_bvndf() {
+    let dir = tmp_dir("fast-settings");
+    let pairs = write_pairs(&dir);
+    let run = |extra: &[&str]| -> (String, Vec<f64>) {
+        let mut args = vec![
+            "--geometry",
+            "vgroove:n=32,depth=6",
+            "--material",
+            "ggx:alpha=0.3",
+            "--pairs",
+            pairs.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let (ok, _, stdout, stderr) = forward(&args);
+        assert!(ok, "{stderr}");
+        let fbar = stdout
+            .lines()
+            .skip(1)
+            .map(|l| l.split(',').nth(4).unwrap().parse::<f64>().unwrap())
+            .collect();
+        (stderr, fbar)
+    };
+    let (log_default, default) = run(&[]);
+    assert!(log_default.contains("160 directions"), "{log_default}");
+    let (log_fine, fine) = run(&["--n-phi", "32", "--rays", "256"]);
+    assert!(log_fine.contains("320 directions"), "{log_fine}");
+    assert_ne!(default, fine);
+    for (a, b) in default.iter().zip(&fine) {
+        assert!((a - b).abs() <= 0.1 * b.abs().max(1e-3), "{a} vs {b}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
