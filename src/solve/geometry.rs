@@ -164,11 +164,13 @@ pub fn solve_with(
     let pool_size = opt.pool_for(items.len());
     let rescore = rescore_share(rots.len(), pool_size);
     // The representatives' values at the shared samples: from the joint search's
-    // representative pairs when given, else evaluated representative by representative.
+    // representative pairs when given (and drawn with the same settings: as many samples),
+    // else evaluated representative by representative.
     let a: Vec<Vec<f64>> = match (reps_values, material_index, &data) {
         (Some(rp), Some(m), ItemData::Lobes { .. }) => rp.values(m),
         _ => None,
     }
+    .filter(|v| v.iter().all(|r| r.len() == shared.pairs.len()))
     .map_or_else(
         || {
             reps.par_iter()
