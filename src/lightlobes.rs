@@ -6,13 +6,13 @@
 //! [`crate::bvndf`] can, but tabulates every pair of 160 grid directions and takes 0.1–0.8 s to
 //! build. Every solver sample is lit from one of the library's 7 lights ([`crate::sampling`]), so
 //! the light side need not be tabulated: per light `l`, per view node `b` of the library's
-//! [`DirGrid`] and per normal cluster `c`, this table stores the moments of
+//! [`crate::dirgrid::DirGrid`] and per normal cluster `c`, this table stores the moments of
 //! [`crate::bvndf`] of the area seen from `w_b` and lit from `w_l`, `G1 = Σ A n` and
 //! `G2 = Σ A n nᵀ` (9 numbers), plus the moments `G1` of the area seen from `w_b` alone (the
 //! visible projected area `a_v`). They are accumulated in the same pass of view rays as the
 //! binned column ([`GammaLayout::trace`]), so a library build gets them almost for free, and
 //! lobes are assembled from them exactly as from the full table
-//! ([`crate::bvndf::assemble_lobes`]) with the light direction exact instead of interpolated.
+//! (`crate::bvndf::assemble_lobes`) with the light direction exact instead of interpolated.
 //!
 //! One geometry's record (`f32`), for `K` clusters, `L` lights and `V` view nodes:
 //!

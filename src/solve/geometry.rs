@@ -1,10 +1,12 @@
 //! The geometry solver (Sec. 4.1): the material is fixed; search the geometry library.
 //!
-//! Per rotation `psi_i`: sample the target rotated by `psi_i`, evaluate the representatives'
-//! `fbar` there with their light lobes ([`crate::lightlobes`], stored in the library: nothing is
-//! rebuilt) and the material's prefiltered table, and get every geometry's approximate `fbar` as
-//! representatives × CX weights (Eq. 12: `fbar` is linear in the binned BVNDF the CX weights
-//! were fitted to, so any accurate evaluation of the representatives may be combined). Stage 1
+//! Every rotation `psi_i` of the target gets its own samples (for stages 2 and 3). Stage 1
+//! compares all rotations at one shared set, rotation 0's ([`search_errors_multi`]): evaluate
+//! the representatives' `fbar` there once, with their light lobes ([`crate::lightlobes`], stored
+//! in the library: nothing is rebuilt) and the material's prefiltered table, and get every
+//! geometry's approximate `fbar` as representatives × CX weights (Eq. 12: `fbar` is linear in
+//! the binned BVNDF the CX weights were fitted to, so any accurate evaluation of the
+//! representatives may be combined), compared with each rotated target's values there. Stage 1
 //! also ranks by the representatives' binned columns with the material's response (the linear
 //! model the weights were fitted to), and the pool of `pool` (geometry, rotation) pairs takes the
 //! best of both rankings in turn: where an item's large weights amplify the difference between
