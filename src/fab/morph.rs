@@ -156,11 +156,10 @@ pub fn ball_dilate(g: &Grid, z: &[f64], r_mm: f64) -> Vec<f64> {
             let src = &ext[sy * pw..(sy + 1) * pw];
             for &(off, gv) in ks {
                 let s = &src[off..off + w];
+                // A select, not a branch, so the loop vectorises (same result as `if v > *ov`).
                 for (ov, sv) in o.iter_mut().zip(s) {
                     let v = sv + gv;
-                    if v > *ov {
-                        *ov = v;
-                    }
+                    *ov = if v > *ov { v } else { *ov };
                 }
             }
         }
