@@ -522,25 +522,38 @@ mod tests {
         assert!(interleave(&[], &[], 3).is_empty());
     }
 
-    #[test]
-    fn search_errors_multi_serves_every_target_as_a_search_of_its_own_would() {
-        let mut rng = crate::rng::Rng::new(5);
-        let (np, c) = (16, 4);
+    /// A random compressed search drawn with `seed`: `np` samples with weights, `targets`
+    /// targets, `c` representatives' values and `items` items' CX weights (some negative).
+    #[allow(clippy::type_complexity)]
+    fn random_search(
+        seed: u64,
+        np: usize,
+        targets: usize,
+        c: usize,
+        items: usize,
+    ) -> (Samples, Vec<Vec<f64>>, Vec<Vec<f64>>, Vec<f32>) {
+        let mut rng = crate::rng::Rng::new(seed);
         let s = Samples {
             pairs: (0..np).map(|_| (0, Vec3::Z)).collect(),
             lights: vec![Vec3::Z],
             weights: (0..np).map(|_| rng.range(0.5, 2.0)).collect(),
         };
-        let ts: Vec<Vec<f64>> = (0..3)
+        let ts = (0..targets)
             .map(|_| (0..np).map(|_| rng.uniform()).collect())
             .collect();
-        let a: Vec<Vec<f64>> = (0..c)
+        let a = (0..c)
             .map(|_| (0..np).map(|_| rng.uniform()).collect())
             .collect();
-        let items = SEARCH_BLOCK + 11;
-        let x: Vec<f32> = (0..items * c)
+        let x = (0..items * c)
             .map(|_| rng.range(-0.5, 1.0) as f32)
             .collect();
+        (s, ts, a, x)
+    }
+
+    #[test]
+    fn search_errors_multi_serves_every_target_as_a_search_of_its_own_would() {
+        let items = SEARCH_BLOCK + 11;
+        let (s, ts, a, x) = random_search(5, 16, 3, 4, items);
         // Small budget: Gram bounds, each target's best rescored, rescored items exact for all.
         let rescore = 100;
         let multi = search_errors_multi(&s, &ts, &a, &x, items, rescore);
@@ -566,22 +579,9 @@ mod tests {
 
     #[test]
     fn search_errors_are_clamped_for_the_best_and_bounded_for_the_rest() {
-        let mut rng = crate::rng::Rng::new(3);
-        let np = 20;
-        let s = Samples {
-            pairs: (0..np).map(|_| (0, Vec3::Z)).collect(),
-            lights: vec![Vec3::Z],
-            weights: (0..np).map(|_| rng.range(0.5, 2.0)).collect(),
-        };
-        let t: Vec<f64> = (0..np).map(|_| rng.uniform()).collect();
-        let c = 3;
-        let a: Vec<Vec<f64>> = (0..c)
-            .map(|_| (0..np).map(|_| rng.uniform()).collect())
-            .collect();
-        let items = SEARCH_BLOCK + 37;
-        let x: Vec<f32> = (0..items * c)
-            .map(|_| rng.range(-0.5, 1.0) as f32)
-            .collect();
+        let (np, c, items) = (20, 3, SEARCH_BLOCK + 37);
+        let (s, ts, a, x) = random_search(3, np, 1, c, items);
+        let t = ts[0].clone();
         // Item j's reconstruction, unclamped and clamped at zero.
         let recon = |j: usize| -> (Vec<f64>, Vec<f64>) {
             let f: Vec<f64> = (0..np)
