@@ -56,7 +56,7 @@ pub fn speed(reps: usize) -> Result<String> {
     let dirs = default_dirs();
     let mut out = format!(
         "Forward model speed ({threads} threads; median of {reps}; 490 pairs = 7 lights × 70 views)\n\n\
-         | geometry (128²) | BVNDF build | BVNDF size | fast 490 pairs | fast, one vMF per cluster | exact 490 pairs (s=2) |\n|---|---|---|---|---|---|\n"
+         | geometry (128²) | BVNDF build | BVNDF size | fast 490 pairs | fast, one vMF per cluster | BVNDF build, `forward`'s default | fast 490 pairs, `forward`'s default | exact 490 pairs (s=2) |\n|---|---|---|---|---|---|---|---|\n"
     );
     let mat = parse_material("ggx:alpha=0.2+lambert:albedo=0.3")?;
     let pre = Prefiltered::build(&mat, &PrefilterConfig::default());
@@ -68,14 +68,21 @@ pub fn speed(reps: usize) -> Result<String> {
         // The libraries' representation (no sub-lobes), for the cost of the sub-lobes.
         let coarse = CompactBvndf::build(&hf, &BvndfConfig::library());
         let (tc, _) = time(reps.max(20), || crate::fast::fbar(&coarse, &pre, &dirs));
+        // The `forward` command's default build (finer grid, seen-area control variate).
+        let (tw, fwd) = time(reps.min(3), || {
+            CompactBvndf::build(&hf, &BvndfConfig::forward())
+        });
+        let (tfw, _) = time(reps.max(20), || crate::fast::fbar(&fwd, &pre, &dirs));
         let ev = ExactEvaluator::new(&hf, 2);
         let (te, _) = time(1, || ev.fbar(&mat, &dirs));
         out.push_str(&format!(
-            "| {spec} | {:.1} ms | {:.2} MB | {:.3} ms | {:.3} ms | {:.2} s |\n",
+            "| {spec} | {:.1} ms | {:.2} MB | {:.3} ms | {:.3} ms | {:.1} ms | {:.3} ms | {:.2} s |\n",
             tb * 1e3,
             geo.bytes() as f64 / 1e6,
             tf * 1e3,
             tc * 1e3,
+            tw * 1e3,
+            tfw * 1e3,
             te
         ));
     }
@@ -220,13 +227,14 @@ pub fn accuracy(cases: usize, seed: u64, cfg: &BvndfConfig) -> Result<String> {
     Ok(format!(
         "Fast vs exact evaluator (exact: 2×2 view rays per cell from both ends): relative RMS error over \
          the 490 default pairs, {cases} random cases, seed {seed}; compact BVNDF: {} × {} grid, {} \
-         rays per direction, {} clusters, {} sub-lobes; its builds took {build_s:.1} s in all \
+         rays per direction (+ {} seen rays), {} clusters, {} sub-lobes; its builds took {build_s:.1} s in all \
          ({:.3} s per geometry)\n\n\
          | pairs | median | 90th percentile | max | cases ≤ 3 % |\n|---|---|---|---|---|\n{}{}\n\
          | case | geometry | material | all pairs | theta ≤ 85° |\n|---|---|---|---|---|\n{rows}",
         cfg.n_theta,
         cfg.n_phi,
         cfg.rays,
+        cfg.seen_rays,
         cfg.clusters,
         cfg.sub_lobes,
         build_s / cases as f64,

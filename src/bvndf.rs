@@ -25,12 +25,20 @@
 //!   ([`BvndfConfig::library`]).
 //!
 //! The moments are integrated with view rays, as the exact evaluator does: for each node `b`,
-//! about 1024 stratified rays from `b` find the points `b` sees ([`Visibility::first_hit`]), and
-//! at each hit one horizon march per azimuth ([`Visibility::horizon`]) answers its visibility from
-//! every polar node of that azimuth at once. Sampling in the view's projection is what gets the
-//! thin visible rims of steep walls at grazing angles right (sampling facet points instead gave
-//! 22 % error on bricks, rays 2 %). The table is symmetric in `(a, b)`; only `a <= b` is stored,
-//! estimated from the rays of `b`, the more grazing node.
+//! stratified rays from `b` ([`BvndfConfig::rays`]) find the points `b` sees
+//! ([`Visibility::first_hit`]), and at each hit one horizon march per azimuth
+//! ([`Visibility::horizon`]) answers its visibility from every polar node of that azimuth at once.
+//! Sampling in the view's projection is what gets the thin visible rims of steep walls at grazing
+//! angles right (sampling facet points instead gave 22 % error on bricks, rays 2 %). The table is
+//! symmetric in `(a, b)`; only `a <= b` is stored, estimated from the rays of `b`, the more grazing
+//! node.
+//!
+//! Optionally ([`BvndfConfig::seen_rays`]) a denser set of first hits without marches estimates
+//! the area seen from `b`, as a control variate: jointly visible = seen from `b` − hidden from
+//! `a`, the seen part from the dense hits and the hidden part (seen minus jointly visible) from
+//! the marched rays. It is applied to the clusters whose every facet faces both nodes, where
+//! the hidden part is occlusion by other geometry only; the estimate stays unbiased and loses
+//! most of the marched rays' noise on rough surfaces.
 
 use crate::dirgrid::DirGrid;
 use crate::frame::{Rotation, Vec3};
@@ -51,6 +59,9 @@ pub struct BvndfConfig {
     /// Sub-lobes per curved cluster: its whole normal distribution split further, for materials
     /// with a glossy lobe. 1: every cluster is one vMF, as in the libraries.
     pub sub_lobes: usize,
+    /// View rays per grid direction for the area seen from it (first hits only, no horizon
+    /// marches): a control variate for the jointly visible moments. 0 or at most `rays`: off.
+    pub seen_rays: usize,
 }
 
 impl Default for BvndfConfig {
@@ -61,11 +72,25 @@ impl Default for BvndfConfig {
             clusters: 16,
             rays: 1024,
             sub_lobes: 16,
+            seen_rays: 0,
         }
     }
 }
 
 impl BvndfConfig {
+    /// The `forward` command's default: 32 azimuths (grazing views along grooves), 512 marched
+    /// view rays and 8192 first hits per direction for the area seen from it (a control variate
+    /// that removes most of the view rays' noise on rough surfaces, `seen_rays`), for a build
+    /// about 4.5× the libraries' grid's (docs/forward-model.md).
+    pub fn forward() -> Self {
+        BvndfConfig {
+            n_phi: 32,
+            rays: 512,
+            seen_rays: 8192,
+            ..BvndfConfig::default()
+        }
+    }
+
     /// The representation the libraries store ([`crate::lightlobes`]): one vMF per cluster. Looks
     /// that are compared with library items (the solvers' targets and re-evaluations) use it, so
     /// that a library combination reproduces its own look.
@@ -286,6 +311,24 @@ impl CompactBvndf {
         let origins = ray_lattice(hf.width(), hf.height(), cfg.rays);
         let n_rays = origins.len() as f64;
         let n_nodes = grid.len();
+        let seen_origins = (cfg.seen_rays > cfg.rays)
+            .then(|| ray_lattice(hf.width(), hf.height(), cfg.seen_rays))
+            .filter(|o| o.len() > origins.len());
+        // faces[k * n_nodes + a]: every facet of cluster k faces node a, so the part of the
+        // cluster seen from b that a does not see is occlusion by other geometry only.
+        let faces: Vec<bool> = if seen_origins.is_some() {
+            let mut min_dot = vec![f64::INFINITY; kc * n_nodes];
+            let dirs: Vec<Vec3> = (0..n_nodes).map(|a| grid.direction(a)).collect();
+            for (n, &k) in normals.iter().zip(&assign) {
+                let row = &mut min_dot[k as usize * n_nodes..][..n_nodes];
+                for (m, d) in row.iter_mut().zip(&dirs) {
+                    *m = m.min(n.dot(*d));
+                }
+            }
+            min_dot.iter().map(|&m| m > 1e-9).collect()
+        } else {
+            Vec::new()
+        };
         // Column b: entries for a <= b, [a][cluster][STRIDE].
         let columns: Vec<Vec<[f64; STRIDE]>> = (0..n_nodes)
             .into_par_iter()
@@ -297,6 +340,7 @@ impl CompactBvndf {
                 // Column b only needs nodes a <= b, none more grazing than b's own polar node,
                 // so horizons below that node's slope need not be resolved (shorter marches).
                 let floor_b = cots[b / np].min(f64::MAX).max(floor);
+                let mut seen_small = vec![[0.0f64; STRIDE]; kc];
                 for &(u, v) in &origins {
                     let (p, f) = vis.first_hit(u, v, wb);
                     let n = facets[f].n;
@@ -305,6 +349,13 @@ impl CompactBvndf {
                         continue;
                     }
                     let wgt = per_ray / c;
+                    if seen_origins.is_some() {
+                        let m = moments(n);
+                        let e = &mut seen_small[assign[f] as usize];
+                        for q in 0..STRIDE {
+                            e[q] += wgt * m[q];
+                        }
+                    }
                     for (jj, &(dx, dy)) in azimuths.iter().enumerate() {
                         let h = vis.horizon(p.x, p.y, p.z, dx, dy, floor_b, stop);
                         t[jj] = cots.iter().take_while(|&&ct| ct >= h).count();
@@ -320,6 +371,36 @@ impl CompactBvndf {
                             let e = &mut col[a * kc + k];
                             for q in 0..STRIDE {
                                 e[q] += wgt * m[q];
+                            }
+                        }
+                    }
+                }
+                if let Some(big) = &seen_origins {
+                    // Control variate: jointly visible = seen from b - occluded towards a. The
+                    // seen part comes from the denser first hits, the occluded part from the
+                    // marched rays (their seen minus their jointly visible moments).
+                    let mut seen_big = vec![[0.0f64; STRIDE]; kc];
+                    let per_big = wb.z / big.len() as f64;
+                    for &(u, v) in big {
+                        let (_, f) = vis.first_hit(u, v, wb);
+                        let n = facets[f].n;
+                        let c = n.dot(wb);
+                        if c <= 1e-9 {
+                            continue;
+                        }
+                        let m = moments(n);
+                        let e = &mut seen_big[assign[f] as usize];
+                        for q in 0..STRIDE {
+                            e[q] += per_big / c * m[q];
+                        }
+                    }
+                    for a in 0..=b {
+                        for k in 0..kc {
+                            if faces[k * n_nodes + a] && faces[k * n_nodes + b] {
+                                let e = &mut col[a * kc + k];
+                                for q in 0..STRIDE {
+                                    e[q] += seen_big[k][q] - seen_small[k][q];
+                                }
                             }
                         }
                     }

@@ -48,7 +48,7 @@ impl Default for ForwardJob {
             method: Method::Fast,
             out: None,
             exact_samples: 2,
-            bvndf: BvndfConfig::default(),
+            bvndf: BvndfConfig::forward(),
             prefilter: PrefilterConfig::default(),
             quiet: false,
         }
@@ -144,9 +144,11 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
             log(
                 job.quiet,
                 format!(
-                    "fast: compact BVNDF ({} lobes, {} directions, {:.2} MB) built in {:.1} ms",
+                    "fast: compact BVNDF ({} lobes, {} directions, {} view rays + {} seen rays per direction, {:.2} MB) built in {:.1} ms",
                     geo.clusters,
                     geo.grid.len(),
+                    job.bvndf.rays,
+                    job.bvndf.seen_rays,
                     geo.bytes() as f64 / 1e6,
                     t.elapsed().as_secs_f64() * 1e3
                 ),

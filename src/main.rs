@@ -80,14 +80,23 @@ enum Cmd {
         /// cluster, as the libraries store; faster, less accurate on rough surfaces).
         #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
         sub_lobes: u16,
-        /// Fast method: azimuths of the compact BVNDF's direction grid (the libraries' grid; 32
-        /// is more accurate at grazing angles along grooves, for a build about 4× longer).
-        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(3..=128))]
+        /// Fast method: polar nodes of the compact BVNDF's direction grid (20: more accurate at
+        /// grazing angles on tall grooves, for a build about 2.5× longer).
+        #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u16).range(2..=64))]
+        n_theta: u16,
+        /// Fast method: azimuths of the compact BVNDF's direction grid (16 is the libraries'
+        /// grid: a build about 4× shorter, less accurate at grazing angles along grooves).
+        #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u16).range(3..=128))]
         n_phi: u16,
-        /// Fast method: view rays per grid direction of the compact BVNDF's build (the
-        /// libraries'; 4096 is less noisy on rough surfaces, for a build about 4× longer).
-        #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(16..=1_048_576))]
+        /// Fast method: view rays per grid direction of the compact BVNDF's build, each with a
+        /// horizon march per azimuth (1024 in the libraries' grid).
+        #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(16..=1_048_576))]
         rays: u32,
+        /// Fast method: first hits per grid direction for the area seen from it, without
+        /// horizon marches (a control variate for the view rays' noise; 0: off, as in the
+        /// libraries).
+        #[arg(long, default_value_t = 8192, value_parser = clap::value_parser!(u32).range(0..=1_048_576))]
+        seen_rays: u32,
         /// No progress log on standard error.
         #[arg(long, short = 'q')]
         quiet: bool,
@@ -338,12 +347,18 @@ enum BenchCmd {
         /// Polar nodes of the compact BVNDF's direction grid.
         #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u16).range(2..=64))]
         n_theta: u16,
-        /// Azimuths of the compact BVNDF's direction grid.
-        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(3..=128))]
+        /// Azimuths of the compact BVNDF's direction grid (`forward`'s default; 16: the
+        /// libraries' grid).
+        #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u16).range(3..=128))]
         n_phi: u16,
-        /// View rays per grid direction of the compact BVNDF's build.
-        #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(16..=1_048_576))]
+        /// View rays per grid direction of the compact BVNDF's build (`forward`'s default;
+        /// 1024 in the libraries' grid).
+        #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(16..=1_048_576))]
         rays: u32,
+        /// First hits per grid direction for the seen area (control variate; 0: off, as in the
+        /// libraries).
+        #[arg(long, default_value_t = 8192, value_parser = clap::value_parser!(u32).range(0..=1_048_576))]
+        seen_rays: u32,
         /// Normal clusters of the compact BVNDF.
         #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
         clusters: u16,
@@ -399,8 +414,10 @@ fn main() -> ExitCode {
             exact_samples,
             lobes,
             sub_lobes,
+            n_theta,
             n_phi,
             rays,
+            seen_rays,
             quiet,
         } => {
             let to_stdout = out.is_none();
@@ -419,9 +436,10 @@ fn main() -> ExitCode {
                 bvndf: BvndfConfig {
                     clusters: lobes as usize,
                     sub_lobes: sub_lobes as usize,
+                    n_theta: n_theta as usize,
                     n_phi: n_phi as usize,
                     rays: rays as usize,
-                    ..BvndfConfig::default()
+                    seen_rays: seen_rays as usize,
                 },
                 quiet,
                 ..ForwardJob::default()
@@ -627,6 +645,7 @@ fn main() -> ExitCode {
                 n_theta,
                 n_phi,
                 rays,
+                seen_rays,
                 clusters,
             } => {
                 let cfg = biscale::bvndf::BvndfConfig {
@@ -634,6 +653,7 @@ fn main() -> ExitCode {
                     n_phi: n_phi as usize,
                     clusters: clusters as usize,
                     rays: rays as usize,
+                    seen_rays: seen_rays as usize,
                     sub_lobes: sub_lobes as usize,
                 };
                 biscale::bench::accuracy(cases.max(1), seed, &cfg).map(|t| print!("{t}"))

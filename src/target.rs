@@ -202,7 +202,12 @@ mod tests {
             .unwrap();
         let aniso = Target::parse("ward:ax=0.3,ay=0.08").unwrap();
         let wi = dir_from_rad(0.5, 0.0);
-        for (t, p) in [(0.5, 3.14159), (0.6, 3.0), (0.4, 3.3), (0.55, 2.9)] {
+        for (t, p) in [
+            (0.5, std::f64::consts::PI),
+            (0.6, 3.0),
+            (0.4, 3.3),
+            (0.55, 2.9),
+        ] {
             let wo = dir_from_rad(t, p);
             let (a, b) = (blurred.brdf(wi, wo), wide.brdf(wi, wo));
             assert!((a - b).abs() < 0.05 * b, "blur: {a} vs {b} at ({t}, {p})");

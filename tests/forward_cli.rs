@@ -356,9 +356,9 @@ fn npy_heightmap_is_scale_free() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// The fast method's build settings are the user's: `--n-phi` and `--rays` reach the compact
-/// BVNDF (its log names the grid's directions), and a finer grid changes the answer only a
-/// little (both are estimates of the same fbar).
+/// The fast method's build settings are the user's: `--n-phi`, `--rays` and `--seen-rays` reach
+/// the compact BVNDF (its log names them), and a coarser grid changes the answer only a little
+/// (both are estimates of the same fbar).
 #[test]
 fn fast_build_settings_reach_the_bvndf() {
     let dir = tmp_dir("fast-settings");
@@ -383,9 +383,13 @@ fn fast_build_settings_reach_the_bvndf() {
         (stderr, fbar)
     };
     let (log_default, default) = run(&[]);
-    assert!(log_default.contains("160 directions"), "{log_default}");
-    let (log_fine, fine) = run(&["--n-phi", "32", "--rays", "256"]);
-    assert!(log_fine.contains("320 directions"), "{log_fine}");
+    assert!(log_default.contains("320 directions"), "{log_default}");
+    let (log_fine, fine) = run(&["--n-phi", "16", "--rays", "256", "--seen-rays", "0"]);
+    assert!(log_fine.contains("160 directions"), "{log_fine}");
+    assert!(
+        log_fine.contains("256 view rays + 0 seen rays"),
+        "{log_fine}"
+    );
     assert_ne!(default, fine);
     for (a, b) in default.iter().zip(&fine) {
         assert!((a - b).abs() <= 0.1 * b.abs().max(1e-3), "{a} vs {b}");

@@ -189,8 +189,18 @@ fn extreme_geometry_and_materials_through_the_fast_evaluator() {
             (s, p)
         })
         .collect();
-    for hf in geometries() {
-        let geo = CompactBvndf::build(&hf, &BvndfConfig::default());
+    // The `forward` command's build too (finer grid, seen rays; seen rays need more cells than
+    // marched rays, hence the 64² surface).
+    let tall = parse_generator("fbm:n=64,amplitude=800")
+        .unwrap()
+        .build()
+        .unwrap();
+    let builds = geometries()
+        .into_iter()
+        .map(|hf| (hf, BvndfConfig::default()))
+        .chain([(tall, BvndfConfig::forward())]);
+    for (hf, bcfg) in builds {
+        let geo = CompactBvndf::build(&hf, &bcfg);
         assert!(
             geo.table.iter().all(|v| v.is_finite()),
             "compact BVNDF of {} has a non-finite entry",
