@@ -114,7 +114,7 @@ struct Tally {
 impl Tally {
     fn add(&mut self, err: f64, recovered: bool, secs: f64) {
         self.n += 1;
-        self.within7 += (err <= 0.07) as usize;
+        self.within7 += (err <= crate::solve::job::MATCH_BOUND) as usize;
         self.within1 += (err <= 0.01) as usize;
         self.recovered += recovered as usize;
         self.times.push(secs);

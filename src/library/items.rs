@@ -233,8 +233,9 @@ fn material_spec(fam: &MaterialFamily, drawn: &[(String, f64)], albedo: f64) -> 
     s
 }
 
-/// Every distinct material of the profile: each analytic draw mixed with every Lambertian albedo,
-/// then every MERL file of the profile's directories (sorted by path).
+/// Every distinct material of the profile: each analytic draw mixed with every Lambertian albedo
+/// (a `lambert` family's draws as they are), then every MERL file of the profile's directories
+/// (sorted by path).
 pub fn material_items(prof: &LibraryProfile, base: &Path) -> Result<Vec<MaterialItem>> {
     let mut out = Vec::new();
     for (fi, fam) in prof.material.family.iter().enumerate() {
@@ -249,7 +250,13 @@ pub fn material_items(prof: &LibraryProfile, base: &Path) -> Result<Vec<Material
             };
             // Material parameters are all continuous.
             let drawn = draw(&mut rng, &fam.params, &fam.log, strata, &|_| false);
-            for &a in &prof.material.lambert {
+            // A Lambertian family is the matte end itself: not mixed with further albedos.
+            let mixes: &[f64] = if fam.model == "lambert" {
+                &[0.0]
+            } else {
+                &prof.material.lambert
+            };
+            for &a in mixes {
                 let spec = material_spec(fam, &drawn, a);
                 parse_material(&spec).map_err(|e| e.within(&ctx))?;
                 out.push(MaterialItem {

@@ -103,7 +103,9 @@ pub struct PrefilterSection {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MaterialFamily {
-    /// A lobe model of the material grammar: `ggx`, `beckmann`, `ct`, `ward`, `blinn`.
+    /// A lobe model of the material grammar: `ggx`, `beckmann`, `ct`, `ward`, `blinn`, or
+    /// `lambert` (pure matte materials, `params = { albedo = [lo, hi] }`, not mixed with
+    /// `material.lambert`).
     pub model: String,
     /// Distinct parameter draws (each mixed with every `lambert` albedo).
     pub count: usize,
@@ -353,7 +355,7 @@ impl LibraryProfile {
         }
         for (i, f) in m.family.iter().enumerate() {
             let key = format!("material.family[{i}]");
-            const MODELS: [&str; 5] = ["ggx", "beckmann", "ct", "ward", "blinn"];
+            const MODELS: [&str; 6] = ["ggx", "beckmann", "ct", "ward", "blinn", "lambert"];
             if !MODELS.contains(&f.model.as_str()) {
                 return Err(Error::new(
                     format!("{key}.model"),

@@ -136,5 +136,61 @@ pub fn table(target: &str, mode: &str, cands: &[Candidate]) -> String {
     if cands.is_empty() {
         s.push_str("| – | no candidate | | | | | |\n");
     }
+    if let Some(best) = cands.first().filter(|c| c.error > MATCH_BOUND) {
+        s.push_str(&format!(
+            "\nNo match: the best answer is {:.1} % from the target, over the {:.0} % within which a \
+             look counts as reproduced (paper Table 1). Nothing in this library{} comes closer; \
+             the table shows how far each answer is.\n",
+            best.error * 100.0,
+            MATCH_BOUND * 100.0,
+            if mode.contains("fixed") {
+                " with what is fixed"
+            } else {
+                ""
+            }
+        ));
+    }
     s
+}
+
+/// The relative error within which a look counts as reproduced (the paper's Table 1 threshold,
+/// and `validate`'s "within 7 %").
+pub const MATCH_BOUND: f64 = 0.07;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solve::{Candidate, Final};
+
+    fn cand(err: f64) -> Candidate {
+        Candidate {
+            geometry: None,
+            geometry_spec: "flat:n=16".into(),
+            material: None,
+            material_spec: "lambert:albedo=0.5".into(),
+            psi_deg: 0.0,
+            colour_shift: None,
+            colour: [0.5; 3],
+            search_error: err,
+            rerank_error: err,
+            error: err,
+            evaluated_by: Final::Exact,
+        }
+    }
+
+    #[test]
+    fn the_table_says_when_nothing_matches() {
+        let t = table(
+            "ggx:alpha=0.001",
+            "geometry solver (material fixed)",
+            &[cand(0.9999), cand(1.2)],
+        );
+        assert!(
+            t.contains("No match: the best answer is 100.0 % from the target")
+                && t.contains("with what is fixed"),
+            "{t}"
+        );
+        let ok = table("ggx:alpha=0.2", "general solver", &[cand(0.02)]);
+        assert!(!ok.contains("No match"), "{ok}");
+    }
 }
