@@ -119,10 +119,9 @@ pub fn accuracy(dir: &Path, geometries: usize, materials_per: usize, seed: u64) 
         ));
     }
     let column = |j: usize| -> Vec<f32> {
-        gamma[j * rows..(j + 1) * rows]
-            .iter()
-            .map(|v| v.to_f32())
-            .collect()
+        let mut v = vec![0f32; rows];
+        crate::gamma::ColumnElement::to_f32s(&gamma[j * rows..(j + 1) * rows], &mut v);
+        v
     };
     let rep_cols: Vec<Vec<f32>> = reps.iter().map(|&k| column(k as usize)).collect();
     let views: Vec<Vec3> = (0..10)
