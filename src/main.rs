@@ -18,6 +18,45 @@ struct Cli {
     cmd: Cmd,
 }
 
+/// The compact BVNDF's build settings, shared by `forward` and `bench accuracy`; the defaults
+/// are `forward`'s ([`BvndfConfig::forward`]).
+#[derive(clap::Args)]
+struct BvndfArgs {
+    /// Sub-lobes per curved cluster, used with glossy materials (1: one vMF per cluster, as the
+    /// libraries store; faster, less accurate on rough surfaces).
+    #[arg(long, default_value_t = BvndfConfig::forward().sub_lobes as u16, value_parser = clap::value_parser!(u16).range(1..=64))]
+    sub_lobes: u16,
+    /// Polar nodes of the direction grid (20: more accurate at grazing angles on tall grooves,
+    /// for a build about 2.5× longer).
+    #[arg(long, default_value_t = BvndfConfig::forward().n_theta as u16, value_parser = clap::value_parser!(u16).range(2..=64))]
+    n_theta: u16,
+    /// Azimuths of the direction grid (16 is the libraries' grid: a build about 4× shorter, less
+    /// accurate at grazing angles along grooves).
+    #[arg(long, default_value_t = BvndfConfig::forward().n_phi as u16, value_parser = clap::value_parser!(u16).range(3..=128))]
+    n_phi: u16,
+    /// View rays per grid direction, each with a horizon march per azimuth (1024 in the
+    /// libraries' grid).
+    #[arg(long, default_value_t = BvndfConfig::forward().rays as u32, value_parser = clap::value_parser!(u32).range(16..=1_048_576))]
+    rays: u32,
+    /// First hits per grid direction for the area seen from it, without horizon marches (a
+    /// control variate for the view rays' noise; 0: off, as in the libraries).
+    #[arg(long, default_value_t = BvndfConfig::forward().seen_rays as u32, value_parser = clap::value_parser!(u32).range(0..=1_048_576))]
+    seen_rays: u32,
+}
+
+impl BvndfArgs {
+    fn config(&self, clusters: u16) -> BvndfConfig {
+        BvndfConfig {
+            n_theta: self.n_theta as usize,
+            n_phi: self.n_phi as usize,
+            clusters: clusters as usize,
+            rays: self.rays as usize,
+            sub_lobes: self.sub_lobes as usize,
+            seen_rays: self.seen_rays as usize,
+        }
+    }
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 enum MethodArg {
     Exact,
@@ -76,27 +115,9 @@ enum Cmd {
         /// Fast method: normal clusters (vMF lobes per direction pair).
         #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
         lobes: u16,
-        /// Fast method: sub-lobes per curved cluster, used with glossy materials (1: one vMF per
-        /// cluster, as the libraries store; faster, less accurate on rough surfaces).
-        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
-        sub_lobes: u16,
-        /// Fast method: polar nodes of the compact BVNDF's direction grid (20: more accurate at
-        /// grazing angles on tall grooves, for a build about 2.5× longer).
-        #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u16).range(2..=64))]
-        n_theta: u16,
-        /// Fast method: azimuths of the compact BVNDF's direction grid (16 is the libraries'
-        /// grid: a build about 4× shorter, less accurate at grazing angles along grooves).
-        #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u16).range(3..=128))]
-        n_phi: u16,
-        /// Fast method: view rays per grid direction of the compact BVNDF's build, each with a
-        /// horizon march per azimuth (1024 in the libraries' grid).
-        #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(16..=1_048_576))]
-        rays: u32,
-        /// Fast method: first hits per grid direction for the area seen from it, without
-        /// horizon marches (a control variate for the view rays' noise; 0: off, as in the
-        /// libraries).
-        #[arg(long, default_value_t = 8192, value_parser = clap::value_parser!(u32).range(0..=1_048_576))]
-        seen_rays: u32,
+        /// Fast method: the compact BVNDF's build.
+        #[command(flatten)]
+        build: BvndfArgs,
         /// No progress log on standard error.
         #[arg(long, short = 'q')]
         quiet: bool,
@@ -341,24 +362,9 @@ enum BenchCmd {
         cases: usize,
         #[arg(long, default_value_t = 1)]
         seed: u64,
-        /// Sub-lobes per curved cluster of the fast method (1: one vMF per cluster).
-        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
-        sub_lobes: u16,
-        /// Polar nodes of the compact BVNDF's direction grid.
-        #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u16).range(2..=64))]
-        n_theta: u16,
-        /// Azimuths of the compact BVNDF's direction grid (`forward`'s default; 16: the
-        /// libraries' grid).
-        #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u16).range(3..=128))]
-        n_phi: u16,
-        /// View rays per grid direction of the compact BVNDF's build (`forward`'s default;
-        /// 1024 in the libraries' grid).
-        #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(16..=1_048_576))]
-        rays: u32,
-        /// First hits per grid direction for the seen area (control variate; 0: off, as in the
-        /// libraries).
-        #[arg(long, default_value_t = 8192, value_parser = clap::value_parser!(u32).range(0..=1_048_576))]
-        seen_rays: u32,
+        /// The compact BVNDF's build.
+        #[command(flatten)]
+        build: BvndfArgs,
         /// Normal clusters of the compact BVNDF.
         #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
         clusters: u16,
@@ -413,11 +419,7 @@ fn main() -> ExitCode {
             height_scale,
             exact_samples,
             lobes,
-            sub_lobes,
-            n_theta,
-            n_phi,
-            rays,
-            seen_rays,
+            build,
             quiet,
         } => {
             let to_stdout = out.is_none();
@@ -433,14 +435,7 @@ fn main() -> ExitCode {
                 patch_size_mm: patch_size,
                 height_scale,
                 exact_samples: exact_samples.clamp(1, 16),
-                bvndf: BvndfConfig {
-                    clusters: lobes as usize,
-                    sub_lobes: sub_lobes as usize,
-                    n_theta: n_theta as usize,
-                    n_phi: n_phi as usize,
-                    rays: rays as usize,
-                    seen_rays: seen_rays as usize,
-                },
+                bvndf: build.config(lobes),
                 quiet,
                 ..ForwardJob::default()
             };
@@ -641,21 +636,10 @@ fn main() -> ExitCode {
             BenchCmd::Accuracy {
                 cases,
                 seed,
-                sub_lobes,
-                n_theta,
-                n_phi,
-                rays,
-                seen_rays,
+                build,
                 clusters,
             } => {
-                let cfg = biscale::bvndf::BvndfConfig {
-                    n_theta: n_theta as usize,
-                    n_phi: n_phi as usize,
-                    clusters: clusters as usize,
-                    rays: rays as usize,
-                    seen_rays: seen_rays as usize,
-                    sub_lobes: sub_lobes as usize,
-                };
+                let cfg = build.config(clusters);
                 biscale::bench::accuracy(cases.max(1), seed, &cfg).map(|t| print!("{t}"))
             }
         },
