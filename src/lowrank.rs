@@ -10,7 +10,9 @@
 //!   symmetric eigen-decomposition. Singular values below about `1e-8 sigma_1` are not resolved.
 //! - [`rsvd_streaming`]: many columns (geometry library): randomized SVD with subspace (power)
 //!   iterations, Halko, Martinsson & Tropp 2011, Alg. 4.4, streaming over column chunks so memory
-//!   is `O((m + n) l)` for a sketch of width `l`.
+//!   is `O((m + n) l)` for a sketch of width `l`. Its products with `B` run in single precision
+//!   (`B` is stored in half or single precision; twice the rate of double), everything else
+//!   (orthonormalisation, the small SVD) in double.
 //! - [`cx`]: representative columns `A ~ A[:, cols] X`, by column-pivoted QR (deterministic,
 //!   greedy) or by leverage-score sampling (Drineas, Mahoney & Muthukrishnan 2008).
 //!
@@ -40,6 +42,23 @@ pub trait BlockSource: Sync {
         cols: Range<usize>,
         out: MatMut<'_, f64>,
     ) -> Result<()>;
+    /// The same block in single precision, for the randomized SVD's products (the library's
+    /// matrices are stored in half or single precision). By default read in double and rounded.
+    fn read_block_f32(
+        &self,
+        rows: Range<usize>,
+        cols: Range<usize>,
+        mut out: MatMut<'_, f32>,
+    ) -> Result<()> {
+        let mut t = Mat::<f64>::zeros(rows.len(), cols.len());
+        self.read_block(rows, cols, t.as_mut())?;
+        for j in 0..t.ncols() {
+            for i in 0..t.nrows() {
+                out[(i, j)] = t[(i, j)] as f32;
+            }
+        }
+        Ok(())
+    }
 }
 
 /// A matrix held in memory (tests, small libraries).
@@ -151,13 +170,33 @@ fn read_tile(
     rows: Range<usize>,
     cols: Range<usize>,
 ) -> Result<(Mat<f64>, f64)> {
-    let mut t = Mat::<f64>::zeros(rows.len(), cols.len());
-    b.read_block(rows.clone(), cols.clone(), t.as_mut())
+    checked_tile(ctx, rows, cols, |r, c, out| b.read_block(r, c, out))
+}
+
+/// [`read_tile`] in single precision (the streaming products); the sum of squares in double.
+fn read_tile_f32(
+    ctx: &str,
+    b: &dyn BlockSource,
+    rows: Range<usize>,
+    cols: Range<usize>,
+) -> Result<(Mat<f32>, f64)> {
+    checked_tile(ctx, rows, cols, |r, c, out| b.read_block_f32(r, c, out))
+}
+
+fn checked_tile<T: Copy + Default + Into<f64> + std::fmt::Display>(
+    ctx: &str,
+    rows: Range<usize>,
+    cols: Range<usize>,
+    read: impl FnOnce(Range<usize>, Range<usize>, MatMut<'_, T>) -> Result<()>,
+) -> Result<(Mat<T>, f64)> {
+    let mut t = Mat::from_fn(rows.len(), cols.len(), |_, _| T::default());
+    read(rows.clone(), cols.clone(), t.as_mut())
         .map_err(|e| e.within(format!("lowrank::{ctx}")))?;
     let mut ss = 0.0;
     for j in 0..t.ncols() {
         for (i, &x) in t.col_as_slice(j).iter().enumerate() {
-            if !x.is_finite() {
+            let v: f64 = x.into();
+            if !v.is_finite() {
                 return Err(err(
                     ctx,
                     format!(
@@ -167,16 +206,28 @@ fn read_tile(
                     ),
                 ));
             }
-            ss += x * x;
+            ss += v * v;
         }
     }
     Ok((t, ss))
+}
+
+fn to_f32(a: MatRef<'_, f64>) -> Mat<f32> {
+    Mat::from_fn(a.nrows(), a.ncols(), |i, j| a[(i, j)] as f32)
+}
+
+fn to_f64(a: MatRef<'_, f32>) -> Mat<f64> {
+    Mat::from_fn(a.nrows(), a.ncols(), |i, j| a[(i, j)] as f64)
 }
 
 // ---- dense kernels, all sequential inside (determinism) ----
 
 fn mm(dst: MatMut<'_, f64>, acc: Accum, lhs: MatRef<'_, f64>, rhs: MatRef<'_, f64>) {
     matmul(dst, acc, lhs, rhs, 1.0, Par::Seq);
+}
+
+fn mm32(dst: MatMut<'_, f32>, acc: Accum, lhs: MatRef<'_, f32>, rhs: MatRef<'_, f32>) {
+    matmul(dst, acc, lhs, rhs, 1.0f32, Par::Seq);
 }
 
 /// Thin SVD `a = U diag(s) V^T`, singular values descending.
@@ -460,7 +511,8 @@ pub struct RsvdConfig {
 }
 
 /// `B X` (`m × l`) and `||B||_F^2`: chunks of columns in order, row tiles of each chunk in
-/// parallel.
+/// parallel. The products run in single precision (twice the double-precision rate; the
+/// matrix is stored in half or single precision anyway), accumulated per row tile.
 fn times_right(
     ctx: &str,
     b: &dyn BlockSource,
@@ -469,8 +521,9 @@ fn times_right(
 ) -> Result<(Mat<f64>, f64)> {
     let (m, n) = (b.rows(), b.cols());
     let l = x.ncols();
+    let x = to_f32(x);
     let row_tiles = ranges(m, tile_rows(m));
-    let mut parts: Vec<(Mat<f64>, f64)> = row_tiles
+    let mut parts: Vec<(Mat<f32>, f64)> = row_tiles
         .iter()
         .map(|r| (Mat::zeros(r.len(), l), 0.0))
         .collect();
@@ -479,9 +532,9 @@ fn times_right(
             .par_iter_mut()
             .zip(row_tiles.par_iter())
             .try_for_each(|((y, ss), rows)| -> Result<()> {
-                let (t, s) = read_tile(ctx, b, rows.clone(), cols.clone())?;
+                let (t, s) = read_tile_f32(ctx, b, rows.clone(), cols.clone())?;
                 *ss += s;
-                mm(
+                mm32(
                     y.as_mut(),
                     Accum::Add,
                     t.as_ref(),
@@ -493,13 +546,16 @@ fn times_right(
     let mut y = Mat::<f64>::zeros(m, l);
     let mut total = 0.0;
     for ((p, s), rows) in parts.iter().zip(&row_tiles) {
-        y.as_mut().subrows_mut(rows.start, rows.len()).copy_from(p);
+        y.as_mut()
+            .subrows_mut(rows.start, rows.len())
+            .copy_from(to_f64(p.as_ref()));
         total += s;
     }
     Ok((y, total))
 }
 
-/// `B^T Q` (`n × l`): chunks of columns in parallel, row tiles of each chunk in order.
+/// `B^T Q` (`n × l`): chunks of columns in parallel, row tiles of each chunk in order, in
+/// single precision as [`times_right`].
 fn times_left_t(
     ctx: &str,
     b: &dyn BlockSource,
@@ -508,15 +564,16 @@ fn times_left_t(
 ) -> Result<Mat<f64>> {
     let (m, n) = (b.rows(), b.cols());
     let l = q.ncols();
+    let q = to_f32(q);
     let chunks = ranges(n, chunk);
     let row_tiles = ranges(m, tile_rows(m));
     let parts = chunks
         .par_iter()
-        .map(|cols| -> Result<Mat<f64>> {
+        .map(|cols| -> Result<Mat<f32>> {
             let mut z = Mat::zeros(cols.len(), l);
             for rows in &row_tiles {
-                let (t, _) = read_tile(ctx, b, rows.clone(), cols.clone())?;
-                mm(
+                let (t, _) = read_tile_f32(ctx, b, rows.clone(), cols.clone())?;
+                mm32(
                     z.as_mut(),
                     Accum::Add,
                     t.as_ref().transpose(),
@@ -528,7 +585,9 @@ fn times_left_t(
         .collect::<Result<Vec<_>>>()?;
     let mut z = Mat::<f64>::zeros(n, l);
     for (p, cols) in parts.iter().zip(&chunks) {
-        z.as_mut().subrows_mut(cols.start, cols.len()).copy_from(p);
+        z.as_mut()
+            .subrows_mut(cols.start, cols.len())
+            .copy_from(to_f64(p.as_ref()));
     }
     Ok(z)
 }

@@ -395,56 +395,80 @@ impl<'a> ItemMatrix<'a> {
     }
 }
 
-impl BlockSource for ItemMatrix<'_> {
-    fn rows(&self) -> usize {
-        self.len
+/// An element type the library matrices are read into: converted from the stored half or
+/// single precision slice to slice (vectorised; element by element, half's f16 conversion was
+/// a call per value and 70 % of a default library build).
+trait ReadElement: Copy + Default + std::ops::MulAssign {
+    fn from_f16s(src: &[half::f16], dst: &mut [Self]);
+    fn from_f32s(src: &[f32], dst: &mut [Self]);
+    fn from_f64(v: f64) -> Self;
+}
+
+impl ReadElement for f64 {
+    fn from_f16s(src: &[half::f16], dst: &mut [f64]) {
+        use half::slice::HalfFloatSliceExt;
+        src.convert_to_f64_slice(dst)
     }
-    fn cols(&self) -> usize {
-        self.items
+    fn from_f32s(src: &[f32], dst: &mut [f64]) {
+        for (o, v) in dst.iter_mut().zip(src) {
+            *o = *v as f64;
+        }
     }
-    fn read_block(
+    fn from_f64(v: f64) -> f64 {
+        v
+    }
+}
+
+impl ReadElement for f32 {
+    fn from_f16s(src: &[half::f16], dst: &mut [f32]) {
+        use half::slice::HalfFloatSliceExt;
+        src.convert_to_f32_slice(dst)
+    }
+    fn from_f32s(src: &[f32], dst: &mut [f32]) {
+        dst.copy_from_slice(src)
+    }
+    fn from_f64(v: f64) -> f32 {
+        v as f32
+    }
+}
+
+impl ItemMatrix<'_> {
+    /// Fill `out` with block `(rows, cols)`. Each item's rows are contiguous in the file and
+    /// each column of `out` is (for the matrices the solvers and the SVD allocate) contiguous in
+    /// memory, so columns convert slice to slice.
+    fn read_into<T: ReadElement>(
         &self,
         rows: Range<usize>,
         cols: Range<usize>,
-        mut out: MatMut<'_, f64>,
+        mut out: MatMut<'_, T>,
     ) -> Result<()> {
-        // Each item's rows are contiguous in the file and each column of `out` is (for the
-        // matrices the solvers and the SVD allocate) contiguous in memory: convert slice to
-        // slice, which vectorises (element by element, half's f16 conversion was a call per
-        // value and 70 % of a default library build).
         let mut buf = Vec::new();
-        let mut put = |jj: usize, fill: &mut dyn FnMut(&mut [f64])| match out
+        let mut put = |jj: usize, fill: &mut dyn FnMut(&mut [T])| match out
             .rb_mut()
             .col_mut(jj)
             .try_as_col_major_mut()
         {
             Some(c) => fill(c.as_slice_mut()),
             None => {
-                buf.resize(rows.len(), 0.0);
+                buf.resize(rows.len(), T::default());
                 fill(&mut buf);
                 for (ii, v) in buf.iter().enumerate() {
                     out[(ii, jj)] = *v;
                 }
             }
         };
+        let item = |j: usize| j * self.len + rows.start..j * self.len + rows.end;
         match self.file.header.dtype {
             Dtype::F16 => {
-                use half::slice::HalfFloatSliceExt;
                 let d = self.file.f16s()?;
                 for (jj, j) in cols.clone().enumerate() {
-                    let src = &d[j * self.len + rows.start..j * self.len + rows.end];
-                    put(jj, &mut |dst| src.convert_to_f64_slice(dst));
+                    put(jj, &mut |dst| T::from_f16s(&d[item(j)], dst));
                 }
             }
             Dtype::F32 => {
                 let d = self.file.f32s()?;
                 for (jj, j) in cols.clone().enumerate() {
-                    let src = &d[j * self.len + rows.start..j * self.len + rows.end];
-                    put(jj, &mut |dst| {
-                        for (o, v) in dst.iter_mut().zip(src) {
-                            *o = *v as f64;
-                        }
-                    });
+                    put(jj, &mut |dst| T::from_f32s(&d[item(j)], dst));
                 }
             }
             d => {
@@ -456,12 +480,38 @@ impl BlockSource for ItemMatrix<'_> {
         }
         if let Some(sc) = &self.scale {
             for (jj, j) in cols.enumerate() {
+                let f = T::from_f64(sc[j]);
                 for ii in 0..rows.len() {
-                    out[(ii, jj)] *= sc[j];
+                    out[(ii, jj)] *= f;
                 }
             }
         }
         Ok(())
+    }
+}
+
+impl BlockSource for ItemMatrix<'_> {
+    fn rows(&self) -> usize {
+        self.len
+    }
+    fn cols(&self) -> usize {
+        self.items
+    }
+    fn read_block(
+        &self,
+        rows: Range<usize>,
+        cols: Range<usize>,
+        out: MatMut<'_, f64>,
+    ) -> Result<()> {
+        self.read_into(rows, cols, out)
+    }
+    fn read_block_f32(
+        &self,
+        rows: Range<usize>,
+        cols: Range<usize>,
+        out: MatMut<'_, f32>,
+    ) -> Result<()> {
+        self.read_into(rows, cols, out)
     }
 }
 
