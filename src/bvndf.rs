@@ -305,8 +305,8 @@ impl CompactBvndf {
         let floor = cots[nt - 1];
         let stop = if nt > 1 { cots[1] } else { f64::INFINITY };
         let vis = Visibility::new(hf);
-        let azimuths: Vec<(f64, f64)> = (0..np)
-            .map(|j| (grid.phi(j).cos(), grid.phi(j).sin()))
+        let azimuths: Vec<_> = (0..np)
+            .map(|j| vis.azimuth(grid.phi(j).cos(), grid.phi(j).sin()))
             .collect();
         let origins = ray_lattice(hf.width(), hf.height(), cfg.rays);
         let n_rays = origins.len() as f64;
@@ -341,8 +341,9 @@ impl CompactBvndf {
                 // so horizons below that node's slope need not be resolved (shorter marches).
                 let floor_b = cots[b / np].min(f64::MAX).max(floor);
                 let mut seen_small = vec![[0.0f64; STRIDE]; kc];
+                let dir = vis.direction(wb);
                 for &(u, v) in &origins {
-                    let (p, f) = vis.first_hit(u, v, wb);
+                    let (p, f) = vis.first_hit_dir(u, v, &dir);
                     let n = facets[f].n;
                     let c = n.dot(wb);
                     if c <= 1e-9 {
@@ -356,8 +357,8 @@ impl CompactBvndf {
                             e[q] += wgt * m[q];
                         }
                     }
-                    for (jj, &(dx, dy)) in azimuths.iter().enumerate() {
-                        let h = vis.horizon(p.x, p.y, p.z, dx, dy, floor_b, stop);
+                    for (jj, az) in azimuths.iter().enumerate() {
+                        let h = vis.horizon_along(p.x, p.y, p.z, az, floor_b, stop);
                         t[jj] = cots.iter().take_while(|&&ct| ct >= h).count();
                     }
                     let m = moments(n);
@@ -382,7 +383,7 @@ impl CompactBvndf {
                     let mut seen_big = vec![[0.0f64; STRIDE]; kc];
                     let per_big = wb.z / big.len() as f64;
                     for &(u, v) in big {
-                        let (_, f) = vis.first_hit(u, v, wb);
+                        let (_, f) = vis.first_hit_dir(u, v, &dir);
                         let n = facets[f].n;
                         let c = n.dot(wb);
                         if c <= 1e-9 {

@@ -57,14 +57,16 @@ impl<'a> ExactEvaluator<'a> {
         // v). A plain regular grid would sample a straight shadow edge of grid-aligned geometry
         // at the same place in every row, so its error would not average out.
         let jitter = |k: usize, g: f64| (0.5 + k as f64 * g).fract();
+        let dir = self.vis.direction(wo);
+        let dir = &dir;
         let mut hits: Vec<(u32, Vec3)> = (0..ny)
             .into_par_iter()
             .flat_map_iter(|j| {
                 (0..nx).map(move |i| {
-                    let (p, f) = self.vis.first_hit(
+                    let (p, f) = self.vis.first_hit_dir(
                         (i as f64 + jitter(j, 0.618_033_988_749_895)) * inv,
                         (j as f64 + jitter(i, 0.414_213_562_373_095)) * inv,
-                        wo,
+                        dir,
                     );
                     (f as u32, p)
                 })
@@ -78,6 +80,7 @@ impl<'a> ExactEvaluator<'a> {
     /// material at once (the shadow marches are shared).
     fn shade(&self, mats: &[&Material], hits: &[(u32, Vec3)], wi: Vec3, wo: Vec3) -> Vec<f64> {
         let mut sum = vec![0.0; mats.len()];
+        let dir = self.vis.direction(wi);
         let mut k = 0;
         while k < hits.len() {
             let t = hits[k].0;
@@ -90,7 +93,7 @@ impl<'a> ExactEvaluator<'a> {
             if ci > 0.0 {
                 let lit = hits[k..end]
                     .iter()
-                    .filter(|(_, p)| self.vis.visible(p.x, p.y, p.z, wi))
+                    .filter(|(_, p)| self.vis.visible_dir(p.x, p.y, p.z, &dir))
                     .count();
                 if lit > 0 {
                     for (s, m) in sum.iter_mut().zip(mats) {
@@ -118,9 +121,10 @@ impl<'a> ExactEvaluator<'a> {
             return 0.0;
         }
         let hits = self.view_hits(w);
+        let dir = self.vis.direction(w);
         let seen = hits
             .par_iter()
-            .filter(|(_, p)| self.vis.visible(p.x, p.y, p.z, w))
+            .filter(|(_, p)| self.vis.visible_dir(p.x, p.y, p.z, &dir))
             .count();
         let hf = self.vis.heightfield();
         hf.base_area() * w.z * seen as f64 / hits.len().max(1) as f64

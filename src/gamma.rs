@@ -188,6 +188,7 @@ impl GammaLayout {
             seen: Vec<f64>,
             lit: Vec<f64>,
         }
+        let light_dirs: Vec<_> = self.lights.iter().map(|w| vis.direction(*w)).collect();
         let blocks: Vec<Block> = (0..nv)
             .into_par_iter()
             .map(|v| {
@@ -197,8 +198,9 @@ impl GammaLayout {
                     seen: vec![0.0f64; kc * 3],
                     lit: vec![0.0f64; nl * kc * STRIDE],
                 };
+                let dv = vis.direction(wv);
                 for &(u, w) in &origins {
-                    let (p, f) = vis.first_hit(u, w, wv);
+                    let (p, f) = vis.first_hit_dir(u, w, &dv);
                     let n = facets[f].n;
                     let c = n.dot(wv);
                     if c <= 1e-9 {
@@ -215,8 +217,8 @@ impl GammaLayout {
                             blk.seen[k * 3 + q] += wgt * m[q];
                         }
                     }
-                    for (l, wl) in self.lights.iter().enumerate() {
-                        if n.dot(*wl) <= 0.0 || !vis.visible(p.x, p.y, p.z, *wl) {
+                    for (l, (wl, dl)) in self.lights.iter().zip(&light_dirs).enumerate() {
+                        if n.dot(*wl) <= 0.0 || !vis.visible_dir(p.x, p.y, p.z, dl) {
                             continue;
                         }
                         let row = &mut blk.col[l * nb..(l + 1) * nb];
