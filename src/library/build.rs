@@ -313,29 +313,56 @@ fn build_chunks<T: Sync>(
     let bar = progress.bar(todo.iter().map(|&k| size(k)).sum::<usize>() as u64, what);
     let t = Instant::now();
     let mut built = 0;
-    for &k in &todo {
-        let part = &items[k * chunk..k * chunk + size(k)];
-        let cols: Vec<Vec<Vec<u8>>> = part
-            .par_iter()
-            .map(|it| {
-                let b = item_bytes(it)?;
-                bar.inc(1);
-                Ok(b)
+    // Each chunk's files are written (joined, checksummed, synced to disk) by a thread of their
+    // own while the next chunk is computed: one chunk in flight, so memory stays two chunks.
+    std::thread::scope(|scope| -> Result<()> {
+        let join = |h: std::thread::ScopedJoinHandle<'_, Result<()>>| {
+            h.join().unwrap_or_else(|_| {
+                Err(Error::new(
+                    dir.display().to_string(),
+                    "the thread writing a chunk stopped unexpectedly",
+                ))
             })
-            .collect::<Result<_>>()?;
-        for (i, o) in outputs.iter().enumerate() {
-            let bytes: Vec<u8> = cols.iter().flat_map(|c| c[i].iter().copied()).collect();
-            write_array(
-                &chunk_path(dir, o.kind, k),
-                o.name,
-                o.dtype,
-                &[part.len(), o.len],
-                &bytes,
-            )?;
+        };
+        let mut pending = None;
+        for &k in &todo {
+            let part = &items[k * chunk..k * chunk + size(k)];
+            let cols: Vec<Vec<Vec<u8>>> = part
+                .par_iter()
+                .map(|it| {
+                    let b = item_bytes(it)?;
+                    bar.inc(1);
+                    Ok(b)
+                })
+                .collect::<Result<_>>()?;
+            if let Some(h) = pending.take() {
+                join(h)?;
+            }
+            let n = part.len();
+            pending = Some(scope.spawn(move || -> Result<()> {
+                for (i, o) in outputs.iter().enumerate() {
+                    let mut bytes = Vec::with_capacity(cols.iter().map(|c| c[i].len()).sum());
+                    for c in &cols {
+                        bytes.extend_from_slice(&c[i]);
+                    }
+                    write_array(
+                        &chunk_path(dir, o.kind, k),
+                        o.name,
+                        o.dtype,
+                        &[n, o.len],
+                        &bytes,
+                    )?;
+                }
+                Ok(())
+            }));
+            rep.chunks_built += 1;
+            built += n;
         }
-        rep.chunks_built += 1;
-        built += part.len();
-    }
+        match pending {
+            Some(h) => join(h),
+            None => Ok(()),
+        }
+    })?;
     bar.finish();
     Ok((built, t.elapsed().as_secs_f64()))
 }
