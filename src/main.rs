@@ -26,8 +26,12 @@ struct BvndfArgs {
     /// libraries store; faster, less accurate on rough surfaces).
     #[arg(long, default_value_t = BvndfConfig::forward().sub_lobes as u16, value_parser = clap::value_parser!(u16).range(1..=64))]
     sub_lobes: u16,
-    /// Polar nodes of the direction grid (20: more accurate at grazing angles on tall grooves,
-    /// for a build about 2.5× longer).
+    /// Normal clusters (vMF lobes per direction pair; 16 in the libraries: half the memory and
+    /// evaluation time, less accurate on tall rough surfaces). `--lobes` is an alias.
+    #[arg(long, alias = "lobes", default_value_t = BvndfConfig::forward().clusters as u16, value_parser = clap::value_parser!(u16).range(1..=64))]
+    clusters: u16,
+    /// Polar nodes of the direction grid (10 in the libraries: a build about 1.7× shorter, less
+    /// accurate at grazing angles on tall grooves).
     #[arg(long, default_value_t = BvndfConfig::forward().n_theta as u16, value_parser = clap::value_parser!(u16).range(2..=64))]
     n_theta: u16,
     /// Azimuths of the direction grid (16 is the libraries' grid: a build about 4× shorter, less
@@ -45,11 +49,11 @@ struct BvndfArgs {
 }
 
 impl BvndfArgs {
-    fn config(&self, clusters: u16) -> BvndfConfig {
+    fn config(&self) -> BvndfConfig {
         BvndfConfig {
             n_theta: self.n_theta as usize,
             n_phi: self.n_phi as usize,
-            clusters: clusters as usize,
+            clusters: self.clusters as usize,
             rays: self.rays as usize,
             sub_lobes: self.sub_lobes as usize,
             seen_rays: self.seen_rays as usize,
@@ -112,9 +116,6 @@ enum Cmd {
         /// Exact method: points per facet side (s² visibility samples per facet).
         #[arg(long, default_value_t = 2)]
         exact_samples: usize,
-        /// Fast method: normal clusters (vMF lobes per direction pair).
-        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
-        lobes: u16,
         /// Fast method: the compact BVNDF's build.
         #[command(flatten)]
         build: BvndfArgs,
@@ -365,9 +366,6 @@ enum BenchCmd {
         /// The compact BVNDF's build.
         #[command(flatten)]
         build: BvndfArgs,
-        /// Normal clusters of the compact BVNDF.
-        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=64))]
-        clusters: u16,
     },
 }
 
@@ -418,7 +416,6 @@ fn main() -> ExitCode {
             patch_size,
             height_scale,
             exact_samples,
-            lobes,
             build,
             quiet,
         } => {
@@ -435,7 +432,7 @@ fn main() -> ExitCode {
                 patch_size_mm: patch_size,
                 height_scale,
                 exact_samples: exact_samples.clamp(1, 16),
-                bvndf: build.config(lobes),
+                bvndf: build.config(),
                 quiet,
                 ..ForwardJob::default()
             };
@@ -633,13 +630,8 @@ fn main() -> ExitCode {
             )
             .and_then(|p| biscale::fab::bench::bench_fab(&p, reps.max(1)))
             .map(|t| print!("{t}")),
-            BenchCmd::Accuracy {
-                cases,
-                seed,
-                build,
-                clusters,
-            } => {
-                let cfg = build.config(clusters);
+            BenchCmd::Accuracy { cases, seed, build } => {
+                let cfg = build.config();
                 biscale::bench::accuracy(cases.max(1), seed, &cfg).map(|t| print!("{t}"))
             }
         },

@@ -186,7 +186,7 @@ fn nonsense_input_is_rejected_clearly() {
     a[i + 1] = pairs.join("o.csv").to_str().unwrap().to_string();
     run(a, &["pairs.csv"]);
     // Lobe counts out of range name the option and the range.
-    for opt in ["--lobes", "--sub-lobes"] {
+    for opt in ["--clusters", "--sub-lobes"] {
         let mut a = base("vgroove:n=16", "lambert:albedo=0.5", pairs_s);
         a.extend([opt.to_string(), "0".to_string()]);
         run(a, &[opt, "1..=64"]);
@@ -383,8 +383,17 @@ fn fast_build_settings_reach_the_bvndf() {
         (stderr, fbar)
     };
     let (log_default, default) = run(&[]);
-    assert!(log_default.contains("320 directions"), "{log_default}");
-    let (log_fine, fine) = run(&["--n-phi", "16", "--rays", "256", "--seen-rays", "0"]);
+    assert!(log_default.contains("512 directions"), "{log_default}");
+    let (log_fine, fine) = run(&[
+        "--n-theta",
+        "10",
+        "--n-phi",
+        "16",
+        "--rays",
+        "256",
+        "--seen-rays",
+        "0",
+    ]);
     assert!(log_fine.contains("160 directions"), "{log_fine}");
     assert!(
         log_fine.contains("256 view rays + 0 seen rays"),
