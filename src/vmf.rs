@@ -41,7 +41,7 @@ impl Vmf {
     #[inline]
     pub fn eval(&self, n: Vec3) -> f64 {
         let c = n.dot(self.mu).clamp(-1.0, 1.0);
-        vmf_norm(self.kappa) * (self.kappa * (c - 1.0)).exp()
+        vmf_norm(self.kappa) * crate::fastmath::exp(self.kappa * (c - 1.0))
     }
 
     /// `cos` of the angle to `mu` for uniform `u` in `[0, 1)` (inverse CDF, stable for all kappa).

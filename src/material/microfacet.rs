@@ -57,7 +57,7 @@ impl Microfacet {
             }
             Distribution::Beckmann => {
                 let tan2 = (1.0 - c2).max(0.0) / c2;
-                let e = (-tan2 / a2).exp();
+                let e = crate::fastmath::exp(-tan2 / a2);
                 if e == 0.0 {
                     return 0.0;
                 }

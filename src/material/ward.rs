@@ -24,7 +24,7 @@ impl Ward {
         let a2 = self.alpha * self.alpha;
         let c2 = ch * ch;
         let tan2 = (1.0 - c2).max(0.0) / c2;
-        let e = (-tan2 / a2).exp();
+        let e = crate::fastmath::exp(-tan2 / a2);
         if e == 0.0 {
             return 0.0;
         }
@@ -54,7 +54,7 @@ impl AnisoWard {
             return 0.0;
         }
         let ex = (h.x / (self.ax * h.z)).powi(2) + (h.y / (self.ay * h.z)).powi(2);
-        let e = (-ex).exp();
+        let e = crate::fastmath::exp(-ex);
         if e == 0.0 {
             return 0.0;
         }
