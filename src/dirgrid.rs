@@ -15,6 +15,8 @@ pub struct DirGrid {
     /// Polar angles in radians, increasing, starting at 0.
     pub thetas: Vec<f64>,
     pub n_phi: usize,
+    /// `tan` of each polar node (the interpolation variable's nodes).
+    tans: Vec<f64>,
     /// Every node's direction, node-major (read for every lobe the fast evaluator assembles).
     dirs: Vec<Vec3>,
 }
@@ -44,6 +46,7 @@ impl DirGrid {
             .flat_map(|&t| (0..n_phi).map(move |j| dir_from_rad(t, phi(j))))
             .collect();
         DirGrid {
+            tans: thetas.iter().map(|t| t.tan()).collect(),
             thetas,
             n_phi,
             dirs,
@@ -87,11 +90,13 @@ impl DirGrid {
             // Interpolate in the ray slope m = cot(theta), the variable in which visibility is a
             // threshold (a point is visible iff m exceeds its horizon slope), so the visible share
             // of an area is the CDF of its horizon slopes; from the zenith use tan(theta) = 1/m.
+            // tan(theta) from the direction itself (theta < 88.5° here, so w.z > 0).
+            let tan_w = (w.x * w.x + w.y * w.y).sqrt() / w.z;
             let t = if i == 0 {
-                theta.tan() / self.thetas[1].tan()
+                tan_w / self.tans[1]
             } else {
-                let (m0, m1) = (1.0 / self.thetas[i].tan(), 1.0 / self.thetas[i + 1].tan());
-                (m0 - 1.0 / theta.tan()) / (m0 - m1)
+                let (m0, m1) = (1.0 / self.tans[i], 1.0 / self.tans[i + 1]);
+                (m0 - 1.0 / tan_w) / (m0 - m1)
             };
             (i, t.clamp(0.0, 1.0))
         };

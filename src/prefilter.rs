@@ -434,7 +434,7 @@ fn local_coords(cfg: &PrefilterConfig, th: f64, kappa: f64, mu: Vec3) -> TableCo
     let (nh, nk, nt, np) = (cfg.n_half, KAPPAS.len(), cfg.n_theta_mu, cfg.n_phi_mu);
     let lkn = &*LN_KAPPAS;
     let fh = (th / FRAC_PI_2 * (nh - 1) as f64).clamp(0.0, (nh - 1) as f64);
-    let lk = kappa.clamp(0.0, KAPPA_MAX).ln_1p();
+    let lk = crate::fastmath::ln_1p(kappa.clamp(0.0, KAPPA_MAX));
     let mut ik = 0;
     while ik + 2 < nk && lk >= lkn[ik + 1] {
         ik += 1;
