@@ -74,7 +74,7 @@ pub fn exp(x: f64) -> f64 {
     if !(x.abs() <= 708.0) {
         return x.exp();
     }
-    const LN2_HI: f64 = 6.931_471_803_691_238_2e-1;
+    const LN2_HI: f64 = 6.931_471_803_691_238e-1;
     const LN2_LO: f64 = 1.908_214_929_270_587_7e-10;
     let k = (x * std::f64::consts::LOG2_E).round();
     let r = (x - k * LN2_HI) - k * LN2_LO;
