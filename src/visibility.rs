@@ -444,53 +444,7 @@ impl<'a> Visibility<'a> {
         match &dir.along {
             // Straight up: nothing on a heightfield is above the zenith ray.
             None => dir.w.z > 0.0,
-            Some(al) => !self.occluded(px, py, pz, &al.fwd, al.m),
-        }
-    }
-
-    /// Whether some point along azimuth `az` rises above slope `m` seen from
-    /// `(px, py, pz)`: [`Visibility::horizon`] with `floor = stop_above = m`, answering only the
-    /// yes/no question, without a division per breakpoint (`h - p_z > m s` instead of
-    /// `(h - p_z) / s > m`). Shadow tests (the exact evaluator's lights, the library's) are most
-    /// of a library build's marches.
-    fn occluded(&self, px: f64, py: f64, pz: f64, az: &Azimuth, m: f64) -> bool {
-        let floor = m.max(MIN_SLOPE);
-        let thr = (m + self.tol).max(floor);
-        let headroom = self.zmax - pz;
-        let period = az.period;
-        let mut walk = CellWalk::new(px, py, az, self.w, self.h);
-        let mut cur_block = walk.block(self.bshift);
-        loop {
-            if self.bsize > 1 {
-                let b = walk.block(self.bshift);
-                if b != cur_block {
-                    cur_block = b;
-                    if walk.s_in > MIN_RUN && self.block_max(b) - pz <= floor * walk.s_in {
-                        let s_out = walk.block_exit(self.bsize, b);
-                        if headroom <= floor * s_out {
-                            return false;
-                        }
-                        walk.restart(s_out);
-                        continue;
-                    }
-                }
-            }
-            let c = self.corners(&walk);
-            let s_exit = walk.s_exit();
-            if let Some(sd) = walk.diagonal_crossing() {
-                if sd > MIN_RUN && walk.height_at(sd, &c) - pz > thr * sd {
-                    return true;
-                }
-            }
-            if s_exit > MIN_RUN {
-                if walk.height_at(s_exit, &c) - pz > thr * s_exit {
-                    return true;
-                }
-                if headroom <= floor * s_exit || s_exit > period {
-                    return false;
-                }
-            }
-            walk.step();
+            Some(al) => self.horizon_along(px, py, pz, &al.fwd, al.m, al.m) <= al.m + self.tol,
         }
     }
 }
