@@ -481,7 +481,19 @@ impl CompactBvndf {
             split,
         };
         let dir = |n: usize| self.grid.direction(n);
-        assemble_lobes(&clusters, wi, wo, &wa, dir, &wb, dir, entry, diag, out);
+        assemble_lobes(
+            &clusters,
+            wi,
+            wo,
+            &wa,
+            dir,
+            &wb,
+            dir,
+            &entry,
+            |c| blend(&wa, &wb, |a, b| entry(a, b, c)),
+            diag,
+            out,
+        );
     }
 }
 
@@ -519,10 +531,41 @@ pub(crate) struct Clusters<'a> {
     pub split: bool,
 }
 
+/// The moments of one cluster interpolated over the nodes: `Σ_a Σ_b ua vb entry(a, b)`, in that
+/// order (callers that blend several clusters at once must add in the same order to get the
+/// same bits).
+#[inline]
+pub(crate) fn blend<'t>(
+    wa: &[(usize, f64)],
+    wb: &[(usize, f64)],
+    entry: impl Fn(usize, usize) -> &'t [f32],
+) -> [f64; STRIDE] {
+    let mut a = [0.0f64; STRIDE];
+    for &(b, vb) in wb {
+        if vb == 0.0 {
+            continue;
+        }
+        for &(na, ua) in wa {
+            let w = ua * vb;
+            if w == 0.0 {
+                continue;
+            }
+            let e = entry(na, b);
+            for q in 0..STRIDE {
+                a[q] += w * e[q] as f64;
+            }
+        }
+    }
+    a
+}
+
 /// Turn tabulated moments into lobes (shared by every table layout). `wa`, `wb`: interpolation
 /// weights of `wi` and `wo` over the table's light-side and view-side nodes, with their
 /// directions `a_dir`, `b_dir`; `entry(a, b, c)`: the 9 moments of cluster `c` at `(a, b)`;
-/// `diag`: the visible projected area `a_v(wo)` from the same table.
+/// `blended(c)`: those of a non-planar cluster interpolated over the nodes, equal to [`blend`]
+/// of `entry` (a table whose clusters lie side by side can blend them all in one pass over
+/// memory, [`crate::lightlobes`]); `diag`: the visible projected area `a_v(wo)` from the same
+/// table.
 ///
 /// * a cluster's share of `gamma` is `wo·G1 / a_v(wo)`, its shape the vMF whose mean and mean
 ///   resultant length match the `(n·wo)`-weighted mean normal `G2 wo / (wo·G1)`;
@@ -537,7 +580,8 @@ pub(crate) fn assemble_lobes<'t>(
     a_dir: impl Fn(usize) -> Vec3,
     wb: &[(usize, f64)],
     b_dir: impl Fn(usize) -> Vec3,
-    entry: impl Fn(usize, usize, usize) -> &'t [f32],
+    entry: &impl Fn(usize, usize, usize) -> &'t [f32],
+    blended: impl Fn(usize) -> [f64; STRIDE],
     diag: f64,
     out: &mut Vec<(f64, Vmf)>,
 ) {
@@ -581,22 +625,11 @@ pub(crate) fn assemble_lobes<'t>(
                 continue;
             }
         }
-        let mut a = [0.0f64; STRIDE];
-        for &(b, vb) in wb {
-            if vb == 0.0 {
-                continue;
-            }
-            for &(na, ua) in wa {
-                let w = ua * vb;
-                if w == 0.0 {
-                    continue;
-                }
-                let e = entry(na, b, c);
-                for q in 0..STRIDE {
-                    a[q] += w * e[q] as f64;
-                }
-            }
-        }
+        let a = if cl.planar[c] {
+            blend(wa, wb, |na, b| entry(na, b, c))
+        } else {
+            blended(c)
+        };
         let mass = wo.x * a[0] + wo.y * a[1] + wo.z * a[2];
         if !(mass > 0.0) {
             continue;

@@ -33,10 +33,27 @@ fn clean(s: f64) -> f64 {
 
 /// `fbar` at every pair.
 pub fn fbar<G: LobeSource + ?Sized>(geo: &G, mat: &Prefiltered, pairs: &[DirPair]) -> Vec<f64> {
-    let mut scratch = Vec::with_capacity(geo.clusters());
+    fbar_by(mat, pairs, geo.clusters(), |_, p, out| {
+        geo.lobes(p.wi, p.wo, mat.resolves_shape(), out)
+    })
+}
+
+/// `fbar` at every pair, with pair `i`'s lobes (about `clusters` of them) put in `out` by
+/// `lobes(i, pair, out)`.
+pub fn fbar_by(
+    mat: &Prefiltered,
+    pairs: &[DirPair],
+    clusters: usize,
+    mut lobes: impl FnMut(usize, &DirPair, &mut Vec<(f64, Vmf)>),
+) -> Vec<f64> {
+    let mut scratch = Vec::with_capacity(clusters);
     pairs
         .iter()
-        .map(|p| fbar_one(geo, mat, p, &mut scratch))
+        .enumerate()
+        .map(|(i, p)| {
+            lobes(i, p, &mut scratch);
+            clean(mat.eval_sum(p.wi, p.wo, &scratch))
+        })
         .collect()
 }
 
@@ -52,11 +69,24 @@ pub struct FixedLobes {
 
 impl FixedLobes {
     pub fn new<G: LobeSource + ?Sized>(geo: &G, pairs: &[DirPair]) -> Self {
+        Self::by(pairs, geo.clusters(), |_, p, l| {
+            geo.lobes(p.wi, p.wo, false, l)
+        })
+    }
+
+    /// The lobes at `pairs`, pair `i`'s (about `clusters` of them) put in `out` by
+    /// `lobes(i, pair, out)`.
+    pub fn by(
+        pairs: &[DirPair],
+        clusters: usize,
+        mut lobes: impl FnMut(usize, &DirPair, &mut Vec<(f64, Vmf)>),
+    ) -> Self {
         let lobes = pairs
             .iter()
-            .map(|p| {
-                let mut l = Vec::with_capacity(geo.clusters());
-                geo.lobes(p.wi, p.wo, false, &mut l);
+            .enumerate()
+            .map(|(i, p)| {
+                let mut l = Vec::with_capacity(clusters);
+                lobes(i, p, &mut l);
                 l
             })
             .collect();

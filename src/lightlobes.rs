@@ -12,7 +12,8 @@
 //! visible projected area `a_v`). They are accumulated in the same pass of view rays as the
 //! binned column ([`GammaLayout::trace`]), so a library build gets them almost for free, and
 //! lobes are assembled from them exactly as from the full table
-//! (`crate::bvndf::assemble_lobes`) with the light direction exact instead of interpolated.
+//! (`crate::bvndf::assemble_lobes`) with the light direction exact instead of interpolated; the
+//! clusters of one (light, view node) lie side by side, so all are interpolated in one pass.
 //!
 //! One geometry's record (`f32`), for `K` clusters, `L` lights and `V` view nodes:
 //!
@@ -26,9 +27,11 @@
 
 use crate::bvndf::{assemble_lobes, Clusters, LobeSource, STRIDE};
 use crate::error::{Error, Result};
+use crate::frame::DirPair;
 use crate::frame::Vec3;
 use crate::gamma::GammaLayout;
 use crate::heightfield::Heightfield;
+use crate::prefilter::Prefiltered;
 use crate::vmf::Vmf;
 use std::borrow::Cow;
 
@@ -132,6 +135,14 @@ impl<'a> LightLobes<'a> {
         &self.record[off..off + 3]
     }
 
+    /// The lit moments of every cluster at light `l` and view node `b`, side by side.
+    #[inline]
+    fn lit_block(&self, l: usize, b: usize) -> &[f32] {
+        let nv = self.layout.views.len();
+        let off = self.clusters * (HEAD + nv * 3) + (l * nv + b) * self.clusters * STRIDE;
+        &self.record[off..off + self.clusters * STRIDE]
+    }
+
     #[inline]
     fn lit(&self, l: usize, b: usize, c: usize) -> &[f32] {
         let nv = self.layout.views.len();
@@ -140,21 +151,76 @@ impl<'a> LightLobes<'a> {
     }
 }
 
-impl LobeSource for LightLobes<'_> {
-    /// The lobes of `gamma(·; wi, wo)`. Defined only where `wi` is one of the library's lights
-    /// (to 1e-9); elsewhere, and at or below the horizon, there are none.
-    /// The libraries keep one vMF per cluster: `split` does not apply.
-    fn lobes(&self, wi: Vec3, wo: Vec3, _split: bool, out: &mut Vec<(f64, Vmf)>) {
-        out.clear();
+/// Where one pair falls in a light-lobe table: its light and its view-node weights. The same
+/// for every geometry of a library, so a search that evaluates many at the same pairs finds
+/// it once ([`LightPairs`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Node {
+    light: usize,
+    views: [(usize, f64); 4],
+}
+
+impl Node {
+    /// `None` where `wi` is not one of the layout's lights or `wo` is at or below the horizon.
+    pub fn find(layout: &GammaLayout, wi: Vec3, wo: Vec3) -> Option<Self> {
         if wo.z <= 0.0 {
-            return;
+            return None;
         }
-        let Some(l) = self.layout.light_index(wi) else {
-            return;
-        };
-        let wb = self.layout.views.weights(wo);
+        Some(Node {
+            light: layout.light_index(wi)?,
+            views: layout.views.weights(wo),
+        })
+    }
+}
+
+/// Direction pairs with their [`Node`]s, for evaluating many geometries of one library at them.
+#[derive(Debug, Clone)]
+pub struct LightPairs {
+    pub pairs: Vec<DirPair>,
+    nodes: Vec<Option<Node>>,
+}
+
+impl LightPairs {
+    pub fn new(layout: &GammaLayout, pairs: Vec<DirPair>) -> Self {
+        let nodes = pairs
+            .iter()
+            .map(|p| Node::find(layout, p.wi, p.wo))
+            .collect();
+        LightPairs { pairs, nodes }
+    }
+}
+
+impl LightLobes<'_> {
+    /// `fbar` of `mat` at `at`'s pairs (found with this geometry's layout); equal to
+    /// [`crate::fast::fbar`] at the same pairs.
+    pub fn fbar(&self, mat: &Prefiltered, at: &LightPairs) -> Vec<f64> {
+        crate::fast::fbar_by(mat, &at.pairs, self.clusters, |i, p, out| {
+            self.lobes_of(at, i, p, out)
+        })
+    }
+
+    /// The lobes at `at`'s pair `i`.
+    #[inline]
+    fn lobes_of(&self, at: &LightPairs, i: usize, p: &DirPair, out: &mut Vec<(f64, Vmf)>) {
+        match &at.nodes[i] {
+            Some(n) => self.lobes_at(n, p.wi, p.wo, out),
+            None => out.clear(),
+        }
+    }
+
+    /// The lobes at `at`'s pairs, for evaluating many materials there; equal to
+    /// [`crate::fast::FixedLobes::new`] at the same pairs.
+    pub fn fixed(&self, at: &LightPairs) -> crate::fast::FixedLobes {
+        crate::fast::FixedLobes::by(&at.pairs, self.clusters, |i, p, out| {
+            self.lobes_of(at, i, p, out)
+        })
+    }
+
+    /// The lobes at a pair whose [`Node`] is `n`.
+    fn lobes_at(&self, n: &Node, wi: Vec3, wo: Vec3, out: &mut Vec<(f64, Vmf)>) {
+        let (l, wb) = (n.light, &n.views);
         let mut diag = 0.0;
-        for &(b, vb) in &wb {
+        for &(b, vb) in wb {
             if vb == 0.0 {
                 continue;
             }
@@ -163,6 +229,27 @@ impl LobeSource for LightLobes<'_> {
                 diag += vb * (wo.x * e[0] as f64 + wo.y * e[1] as f64 + wo.z * e[2] as f64);
             }
         }
+        // Every cluster's lit moments interpolated over the view nodes, in one pass over each
+        // node's contiguous block (the order of additions is `bvndf::blend`'s).
+        // (Flat, so that the loop runs over whole vector registers.)
+        let n = self.clusters * STRIDE;
+        let mut stack = [0.0f64; 32 * STRIDE];
+        let mut heap = Vec::new();
+        let acc: &mut [f64] = if n <= stack.len() {
+            &mut stack[..n]
+        } else {
+            heap.resize(n, 0.0);
+            &mut heap
+        };
+        for &(b, vb) in wb {
+            if vb == 0.0 {
+                continue;
+            }
+            for (a, &e) in acc.iter_mut().zip(self.lit_block(l, b)) {
+                *a += vb * e as f64;
+            }
+        }
+        let acc = &*acc;
         let cl = Clusters {
             centres: &self.centres,
             planar: &self.planar,
@@ -176,12 +263,29 @@ impl LobeSource for LightLobes<'_> {
             wo,
             &[(l, 1.0)],
             |_| wi,
-            &wb,
+            wb,
             |b| self.layout.views.direction(b),
-            |a, b, c| self.lit(a, b, c),
+            &|a, b, c| self.lit(a, b, c),
+            |c| {
+                let mut a = [0.0; STRIDE];
+                a.copy_from_slice(&acc[c * STRIDE..(c + 1) * STRIDE]);
+                a
+            },
             diag,
             out,
         );
+    }
+}
+
+impl LobeSource for LightLobes<'_> {
+    /// The lobes of `gamma(·; wi, wo)`. Defined only where `wi` is one of the library's lights
+    /// (to 1e-9); elsewhere, and at or below the horizon, there are none.
+    /// The libraries keep one vMF per cluster: `split` does not apply.
+    fn lobes(&self, wi: Vec3, wo: Vec3, _split: bool, out: &mut Vec<(f64, Vmf)>) {
+        match Node::find(self.layout, wi, wo) {
+            Some(n) => self.lobes_at(&n, wi, wo, out),
+            None => out.clear(),
+        }
     }
 
     fn clusters(&self) -> usize {

@@ -232,6 +232,13 @@ enum Cmd {
         /// starts. 0: flat-patch and random starts only.
         #[arg(long, default_value_t = 512)]
         joint_pool: usize,
+        /// Solvers to run, comma-separated (each with its exhaustive scan) [default: all]
+        #[arg(long, value_delimiter = ',')]
+        solvers: Vec<SolverArg>,
+        /// Leave out the exhaustive scans (every library item with its own data; seconds per
+        /// case on a large library).
+        #[arg(long)]
+        no_exhaustive: bool,
         /// Also sweep the geometry solver's accuracy knobs (error against run time).
         #[arg(long)]
         sweep: bool,
@@ -256,6 +263,23 @@ enum Cmd {
         #[command(subcommand)]
         what: BenchCmd,
     },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum SolverArg {
+    Geometry,
+    Material,
+    General,
+}
+
+impl From<SolverArg> for biscale::validate::Solver {
+    fn from(s: SolverArg) -> Self {
+        match s {
+            SolverArg::Geometry => Self::Geometry,
+            SolverArg::Material => Self::Material,
+            SolverArg::General => Self::General,
+        }
+    }
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -532,6 +556,8 @@ fn main() -> ExitCode {
             starts,
             beam,
             joint_pool,
+            solvers,
+            no_exhaustive,
             sweep,
             plot,
             library_targets,
@@ -564,6 +590,8 @@ fn main() -> ExitCode {
                             plot,
                             quiet,
                             library_targets,
+                            solvers: solvers.into_iter().map(Into::into).collect(),
+                            exhaustive: !no_exhaustive,
                         },
                     )
                 })

@@ -25,8 +25,8 @@ use crate::prefilter::Prefiltered;
 use crate::rng::Rng;
 use crate::solve::general::GeneralOptions;
 use crate::solve::{
-    bvndf_of, fast_values, library_heightfield, material_prefiltered, rotated_samples, Candidate,
-    Final, Look, SolveOptions,
+    bvndf_of, library_heightfield, material_prefiltered, rotated_samples, Candidate, Final, Look,
+    SolveOptions,
 };
 use rayon::prelude::*;
 use std::path::PathBuf;
@@ -49,6 +49,28 @@ pub struct ValidateJob {
     /// where the library's model is the only one. Otherwise targets come from the full forward
     /// model and answers are verified with it.
     pub library_targets: bool,
+    /// Which solvers run (each with its exhaustive scan where it has one); empty: all three.
+    pub solvers: Vec<Solver>,
+    /// Run the exhaustive scans beside the geometry and material solvers (seconds per case on
+    /// a large library).
+    pub exhaustive: bool,
+}
+
+/// A solver `validate` can run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Solver {
+    /// Material fixed to the truth.
+    Geometry,
+    /// Geometry fixed to the truth.
+    Material,
+    /// Both unknown.
+    General,
+}
+
+impl ValidateJob {
+    fn runs(&self, s: Solver) -> bool {
+        self.solvers.is_empty() || self.solvers.contains(&s)
+    }
 }
 
 /// One library combination as a target look as the library represents it: the geometry's
@@ -147,9 +169,10 @@ fn exhaustive_geometry(
     let (s, t) = rotated_samples(look, &lib.gamma_layout().lights, 0.0, &opt.sampling);
     let pf = material_prefiltered(lib, &mat, Some(m))?;
     let lobes = lib.geometry_lobes()?;
+    let at = crate::lightlobes::LightPairs::new(&lobes.layout, crate::solve::dir_pairs(&s));
     let errs: Vec<f64> = (0..lib.manifest.geometries)
         .into_par_iter()
-        .map(|j| Ok(s.rel_error(&t, &fast_values(&lobes.get(j)?, &pf, &s))))
+        .map(|j| Ok(s.rel_error(&t, &lobes.get(j)?.fbar(&pf, &at))))
         .collect::<Result<_>>()?;
     let (best, e) = argmin(&errs);
     Ok(candidate(
@@ -298,8 +321,9 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
             rotated_samples(&look, &lights, psi, &opt.sampling);
         }
         sampling_secs.push(t.elapsed().as_secs_f64());
-        // Run one solver (timed), verify its answer (untimed) and count it.
+        // Run one solver (timed), verify its answer (untimed), count it, and name a miss.
         let run = |tally: &mut Tally,
+                   name: &str,
                    solve: &dyn Fn() -> Result<Option<Candidate>>,
                    recovered: &dyn Fn(&Candidate) -> bool|
          -> Result<()> {
@@ -308,43 +332,71 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
             let secs = t.elapsed().as_secs_f64();
             let err = verified(lib, &look, best.as_ref(), (g, m), &opt, job.library_targets)?;
             tally.add(err, best.as_ref().is_some_and(recovered), secs);
+            if err > crate::solve::job::MATCH_BOUND && !job.quiet {
+                eprintln!(
+                    "validate: case {}: {name} missed 7 %: {} (geometry {g} '{}', material {m} '{}'), answer {}",
+                    c + 1,
+                    if err.is_finite() { format!("{:.2} %", err * 100.0) } else { "no answer".into() },
+                    gi[g].spec,
+                    mi[m].spec,
+                    best.as_ref().map_or("none".to_string(), |b| format!(
+                        "geometry {:?} material {:?} psi {:.0}",
+                        b.geometry, b.material, b.psi_deg
+                    )),
+                );
+            }
             Ok(())
         };
         let first = |r: crate::solve::SolveResult| r.candidates.into_iter().next();
         let is_g = |b: &Candidate| b.geometry == Some(g);
         let is_m = |b: &Candidate| b.material == Some(m);
-        let hf = library_heightfield(&gi[g].spec)?;
-        run(
-            &mut tg,
-            &|| {
-                crate::solve::geometry::solve(lib, &look, &mat, &mi[m].spec, Some(m), &opt)
-                    .map(first)
-            },
-            &is_g,
-        )?;
-        run(
-            &mut eg,
-            &|| exhaustive_geometry(lib, &look, m, &opt).map(Some),
-            &is_g,
-        )?;
-        run(
-            &mut tm,
-            &|| {
-                crate::solve::material::solve(lib, &look, &hf, &gi[g].spec, Some(g), 0.0, &opt)
-                    .map(first)
-            },
-            &is_m,
-        )?;
-        run(
-            &mut em,
-            &|| exhaustive_material(lib, &look, g, &opt).map(Some),
-            &is_m,
-        )?;
-        run(
-            &mut tgen,
-            &|| crate::solve::general::solve(lib, &look, &opt, &job.general).map(first),
-            &|b| is_g(b) && is_m(b),
-        )?;
+        if job.runs(Solver::Geometry) {
+            run(
+                &mut tg,
+                "geometry solver",
+                &|| {
+                    crate::solve::geometry::solve(lib, &look, &mat, &mi[m].spec, Some(m), &opt)
+                        .map(first)
+                },
+                &is_g,
+            )?;
+            if job.exhaustive {
+                run(
+                    &mut eg,
+                    "geometry exhaustive scan",
+                    &|| exhaustive_geometry(lib, &look, m, &opt).map(Some),
+                    &is_g,
+                )?;
+            }
+        }
+        if job.runs(Solver::Material) {
+            let hf = library_heightfield(&gi[g].spec)?;
+            run(
+                &mut tm,
+                "material solver",
+                &|| {
+                    crate::solve::material::solve(lib, &look, &hf, &gi[g].spec, Some(g), 0.0, &opt)
+                        .map(first)
+                },
+                &is_m,
+            )?;
+            if job.exhaustive {
+                run(
+                    &mut em,
+                    "material exhaustive scan",
+                    &|| exhaustive_material(lib, &look, g, &opt).map(Some),
+                    &is_m,
+                )?;
+            }
+        }
+        if job.runs(Solver::General) {
+            run(
+                &mut tgen,
+                "general solver",
+                &|| crate::solve::general::solve(lib, &look, &opt, &job.general).map(first),
+                &|b| is_g(b) && is_m(b),
+            )?;
+        }
         if !job.quiet {
             eprintln!(
                 "validate: case {}/{} done ({:.0} s)",
@@ -375,7 +427,7 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
     };
     let mut out = format!(
         "Library {} ('{}': {} geometries, {} materials; {} / {} representatives), {} cases, seed {}; \
-         {protocol}; psi = {}, pool = {}, K = {}, {} starts.\n\n\
+         {protocol}; psi = {}, pool = {} geometries / {} materials, K = {}, {} starts.\n\n\
          | solver | cases | within 7 % | exact recovery | within 1 % | median time | 95th pct time | median error |\n\
          |---|---|---|---|---|---|---|---|\n",
         lib.dir.display(),
@@ -387,15 +439,26 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
         job.cases,
         job.seed,
         opt.psi,
-        opt.pool_for(ng),
+        opt.geometry_pool_for(ng),
+        opt.pool_for(nm),
         opt.k,
         job.general.starts
     );
-    out += &row("geometry (material fixed)", &tg);
-    out += &row("  exhaustive scan, same cases", &eg);
-    out += &row("material (geometry fixed)", &tm);
-    out += &row("  exhaustive scan, same cases", &em);
-    out += &row("general (both unknown)", &tgen);
+    if job.runs(Solver::Geometry) {
+        out += &row("geometry (material fixed)", &tg);
+        if job.exhaustive {
+            out += &row("  exhaustive scan, same cases", &eg);
+        }
+    }
+    if job.runs(Solver::Material) {
+        out += &row("material (geometry fixed)", &tm);
+        if job.exhaustive {
+            out += &row("  exhaustive scan, same cases", &em);
+        }
+    }
+    if job.runs(Solver::General) {
+        out += &row("general (both unknown)", &tgen);
+    }
     out += &format!(
         "\nDrawing each target's samples (7 lights × {} views, gradient importance; not in the times above): median {:.3} s.\n",
         opt.sampling.views_per_light,

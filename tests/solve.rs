@@ -147,6 +147,8 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
         plot: None,
         quiet: true,
         library_targets: false,
+        solvers: Vec::new(),
+        exhaustive: true,
     };
     let t = biscale::validate::run(&lib, &job).unwrap();
     assert!(
@@ -180,6 +182,28 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("--psi 1"), "{e}");
+    // One solver only: its rows and no others.
+    let only = biscale::validate::ValidateJob {
+        solvers: vec![biscale::validate::Solver::Material],
+        ..paper.clone()
+    };
+    let t = biscale::validate::run(&lib, &only).unwrap();
+    assert!(
+        t.contains("| material (geometry fixed) | 1 |")
+            && t.contains("exhaustive")
+            && !t.contains("geometry (material fixed)")
+            && !t.contains("general (both unknown)"),
+        "{t}"
+    );
+    let fast = biscale::validate::ValidateJob {
+        exhaustive: false,
+        ..only.clone()
+    };
+    let t = biscale::validate::run(&lib, &fast).unwrap();
+    assert!(
+        t.contains("| material (geometry fixed) | 1 |") && !t.contains("exhaustive"),
+        "{t}"
+    );
 
     let (out, job) = design_job(
         "design",

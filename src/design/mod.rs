@@ -166,7 +166,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
         // The pool counts (geometry, rotation) pairs; the solver keeps each geometry once, so
         // `candidates` different geometries need up to `candidates × psi` pairs.
         pool: (scene.candidates * scene.psi.max(1))
-            .max(crate::solve::auto_pool(lib.manifest.geometries)),
+            .max(crate::solve::auto_geometry_pool(lib.manifest.geometries)),
         psi: scene.psi,
         // The fabrication stage evaluates the designed and the made surface of every feasible
         // candidate with the fast evaluator; a third solver stage would repeat that.

@@ -19,15 +19,16 @@
 
 use super::joint::RepPairs;
 use super::{
-    bvndf_of, exact_values, fast_values, interleave, library_heightfield, material_prefiltered,
-    psi_angle, rescore_share, rotated_samples, search_errors_multi, smallest, Candidate, Final,
-    Look, SolveOptions, SolveResult, SolveStats,
+    bvndf_of, dir_pairs, exact_values, fast_values, interleave, library_heightfield,
+    material_prefiltered, psi_angle, rescore_share, rotated_samples, search_errors_multi, smallest,
+    Candidate, Final, Look, SolveOptions, SolveResult, SolveStats,
 };
 use crate::error::Result;
 use crate::gamma::Response;
 use crate::library::build::prefilter_config;
 use crate::library::GeometryLobes;
 use crate::library::Library;
+use crate::lightlobes::LightPairs;
 use crate::material::Material;
 use crate::prefilter::{PrefilterConfig, Prefiltered};
 use crate::sampling::Samples;
@@ -37,6 +38,8 @@ use std::time::Instant;
 struct Rotation {
     psi: f64,
     samples: Samples,
+    /// The samples' pairs placed in the light-lobe table once, for every geometry.
+    at: LightPairs,
     target: Vec<f64>,
     /// The material's response to binned columns (only when the search uses them).
     response: Option<Response>,
@@ -58,7 +61,7 @@ impl ItemData {
     /// `fbar` of library geometry `j` at rotation `r`'s samples.
     fn values(&self, j: usize, r: &Rotation) -> Result<Vec<f64>> {
         match (self, &r.response) {
-            (ItemData::Lobes { lobes, pf }, _) => Ok(fast_values(&lobes.get(j)?, pf, &r.samples)),
+            (ItemData::Lobes { lobes, pf }, _) => Ok(lobes.get(j)?.fbar(pf, &r.at)),
             (ItemData::Binned { gamma, rows }, Some(resp)) => {
                 Ok(resp.apply(&gamma.f16s()?[j * rows..(j + 1) * rows]))
             }
@@ -70,12 +73,28 @@ impl ItemData {
     }
 }
 
-/// Stage 2 ranks a pool larger than this at every [`COARSE_STEP`]-th sample first, and evaluates
-/// its best quarter (at least this many) at every sample.
+/// Stage 2 narrows a pool larger than this by coarse passes, each keeping its best quarter
+/// (at least this many), and evaluates what is left at every sample.
 pub const COARSE_KEEP: usize = 64;
 
-/// Sample stride of stage 2's coarse ranking.
+/// Each coarse pass keeps a quarter of the pool, and uses a quarter of the next pass's samples.
 pub const COARSE_STEP: usize = 4;
+
+/// The fewest samples a coarse pass compares at.
+pub const COARSE_MIN_SAMPLES: usize = 24;
+
+/// The sample stride of the coarse pass over a pool of `n` (narrowed to `floor` in the end) at
+/// `samples` samples: `COARSE_STEP` to the number of passes still to run, so that every pass
+/// costs about the same (a quarter of the items at four times the samples), but never fewer
+/// than [`COARSE_MIN_SAMPLES`] samples.
+pub fn coarse_step(n: usize, floor: usize, samples: usize) -> usize {
+    let (mut n, mut step) = (n, 1);
+    while n > floor.max(1) {
+        n = n.div_ceil(COARSE_STEP);
+        step *= COARSE_STEP;
+    }
+    step.min((samples / COARSE_MIN_SAMPLES).max(1))
+}
 
 /// Solve for the geometry with `material` fixed. `material_label` names it in the results.
 pub fn solve(
@@ -140,6 +159,7 @@ pub fn solve_with(
             };
             Rotation {
                 psi,
+                at: LightPairs::new(&layout, dir_pairs(&samples)),
                 samples,
                 target,
                 response,
@@ -163,7 +183,7 @@ pub fn solve_with(
             }
         })
         .collect();
-    let pool_size = opt.pool_for(items.len());
+    let pool_size = opt.geometry_pool_for(items.len());
     let rescore = rescore_share(rots.len(), pool_size);
     // The representatives' values at the shared samples: from the joint search's
     // representative pairs when given (and drawn with the same settings: as many samples),
@@ -222,27 +242,34 @@ pub fn solve_with(
     stats.search_seconds = t0.elapsed().as_secs_f64();
     // Stage 2: each pooled geometry's own data.
     let t1 = Instant::now();
-    // A large pool is first ranked at every COARSE_STEP-th sample, and only its best quarter
-    // (at least COARSE_KEEP) is evaluated at every sample.
-    let pool = match &data {
-        ItemData::Lobes { lobes, pf } if pool.len() > COARSE_KEEP => {
-            let coarse: Vec<(Samples, Vec<f64>)> = rots
+    // A large pool is narrowed by successive coarse passes (each ranks the pool at every
+    // `step`-th sample and keeps its best quarter), until at most COARSE_KEEP are left for
+    // every sample.
+    let floor = COARSE_KEEP.max(opt.k);
+    let mut pool = pool;
+    if let ItemData::Lobes { lobes, pf } = &data {
+        while pool.len() > floor {
+            let step = coarse_step(pool.len(), floor, rots[0].samples.pairs.len());
+            let coarse: Vec<(Samples, LightPairs, Vec<f64>)> = rots
                 .iter()
-                .map(|r| r.samples.every(COARSE_STEP, &r.target))
+                .map(|r| {
+                    let (s, t) = r.samples.every(step, &r.target);
+                    let at = LightPairs::new(&layout, dir_pairs(&s));
+                    (s, at, t)
+                })
                 .collect();
             let errs: Vec<f64> = pool
                 .par_iter()
                 .map(|&i| {
                     let (_, j, ri) = scored[i];
-                    let (s, t) = &coarse[ri];
-                    Ok(s.rel_error(t, &fast_values(&lobes.get(j)?, pf, s)))
+                    let (s, at, t) = &coarse[ri];
+                    Ok(s.rel_error(t, &lobes.get(j)?.fbar(pf, at)))
                 })
                 .collect::<Result<_>>()?;
-            let keep = (pool.len() / 4).max(COARSE_KEEP).max(opt.k);
-            smallest(&errs, keep).into_iter().map(|i| pool[i]).collect()
+            let keep = (pool.len() / COARSE_STEP).max(floor);
+            pool = smallest(&errs, keep).into_iter().map(|i| pool[i]).collect();
         }
-        _ => pool,
-    };
+    }
     let mut reranked: Vec<(f64, f64, usize, usize)> = pool
         .par_iter()
         .map(|&i| {

@@ -24,8 +24,8 @@ use super::{
     material_prefiltered, rotated_samples, smallest, Candidate, Final, Look, SolveOptions,
 };
 use crate::error::{Error, Result};
-use crate::fast::FixedLobes;
 use crate::library::Library;
+use crate::lightlobes::LightPairs;
 use crate::material::parse_material;
 use faer::Mat;
 use rayon::prelude::*;
@@ -170,13 +170,13 @@ pub fn search(
     // depend on the target, so only the linear term is computed per rotation. Stage 2 below
     // compares each pair at its rotation's own samples.
     let (s0, t0) = &rots[0];
-    let pairs = super::dir_pairs(s0);
-    let np = pairs.len();
+    let at0 = LightPairs::new(&lobes.layout, super::dir_pairs(s0));
+    let np = at0.pairs.len();
     // fbar(rep_r, rep_s) at the samples: [r][s][p].
     let rr: Vec<Vec<Vec<f64>>> = greps
         .par_iter()
         .map(|&r| {
-            let fixed = FixedLobes::new(&lobes.get(r as usize)?, &pairs);
+            let fixed = lobes.get(r as usize)?.fixed(&at0);
             Ok(rep_tables.iter().map(|pf| fixed.fbar(pf)).collect())
         })
         .collect::<Result<_>>()?;
@@ -231,27 +231,23 @@ pub fn search(
         let best: Vec<Vec<Pair>> = blocks
             .into_par_iter()
             .map(|gs| {
-                // P for the block's geometries at once: X (geometries × kr) · rt.
-                let x = Mat::from_fn(gs.len(), kr, |i, r| gx[(gs.start + i) * kr + r]);
-                let mut p = Mat::<f32>::zeros(gs.len(), ks * d);
+                // P for the block's geometries at once, one column per geometry (so that each
+                // geometry's values are contiguous): rtᵀ · Xᵀ, (ks·d) × geometries.
+                let xt = Mat::from_fn(kr, gs.len(), |r, i| gx[(gs.start + i) * kr + r]);
+                let mut p = Mat::<f32>::zeros(ks * d, gs.len());
                 faer::linalg::matmul::matmul(
                     p.as_mut(),
                     faer::Accum::Replace,
-                    x.as_ref(),
-                    rt.as_ref(),
+                    rt.as_ref().transpose(),
+                    xt.as_ref(),
                     1.0,
                     faer::Par::Seq,
                 );
                 // Each geometry's quadratic form in the materials' coordinates, as rows:
                 // [Q_ac (a <= c)] once, [-2 b_a] per rotation; then every material's error
                 // at once, E = Vq Uqᵀ + Vl Ulᵀ + |t|².
-                let pgs: Vec<Vec<Vec<f32>>> = (0..gs.len())
-                    .map(|i| {
-                        let row = p.row(i);
-                        (0..ks)
-                            .map(|a| (0..d).map(|k| row[a * d + k]).collect())
-                            .collect()
-                    })
+                let pgs: Vec<Vec<&[f32]>> = (0..gs.len())
+                    .map(|i| p.col_as_slice(i).chunks_exact(d).collect())
                     .collect();
                 let vq = Mat::<f64>::from_fn(gs.len(), nqq, |i, j| {
                     let (a, c) = upper_pair(ks, j);
@@ -330,11 +326,15 @@ pub fn search(
         v.sort_by_key(|(k, _)| *k);
         v
     };
+    let ats: Vec<LightPairs> = rots
+        .iter()
+        .map(|(s, _)| LightPairs::new(&lobes.layout, super::dir_pairs(s)))
+        .collect();
     let mut reranked: Vec<Pair> = groups
         .par_iter()
         .map(|((g, ri), ms)| {
             let (s, t) = &rots[*ri];
-            let fixed = FixedLobes::new(&lobes.get(*g)?, &super::dir_pairs(s));
+            let fixed = lobes.get(*g)?.fixed(&ats[*ri]);
             ms.iter()
                 .map(|&(m, search_error)| {
                     let pf = material_prefiltered(lib, &parse_material(&mitems[m].spec)?, Some(m))?;

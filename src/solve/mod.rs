@@ -35,22 +35,39 @@ use serde::Serialize;
 
 pub use look::Look;
 
-/// The automatic pool of a library of `items`: one per 40 items, from 64 to 1024. 64 was tuned on
+/// The automatic pool of the material solver for a library of `items`: one per 40 items, from
+/// 64 to 1024. 64 was tuned on
 /// the 800-geometry `default` library; on the 10,277-geometry `paper16` (20 cases) a pool of 256 took the
 /// geometry solver from 85 % to 95 % within 7 % (its exhaustive scan: 100 %; `docs/solvers.md`).
 pub fn auto_pool(items: usize) -> usize {
     (items / 40).clamp(64, 1024)
 }
 
+/// The automatic pool of the geometry solver for a library of `items` geometries: one per 5
+/// items, from 64 to 4096. Stage 2 narrows it by coarse passes of about equal cost
+/// ([`geometry::coarse_step`]), so a pool four times larger costs one pass more. On the
+/// 10,277-geometry `paper16` library (50 cases, the paper's protocol) pools of 256, 1024 and
+/// 2048 put 92 %, 98 % and 100 % of the cases within 7 % (`docs/solvers.md`).
+pub fn auto_geometry_pool(items: usize) -> usize {
+    (items / 5).clamp(64, 4096)
+}
+
 impl SolveOptions {
-    /// The pool for a library of `items`: the one asked for, or [`auto_pool`]; never below `k`.
+    /// The pool for a library of `items` materials: the one asked for, or [`auto_pool`];
+    /// never below `k`.
     pub fn pool_for(&self, items: usize) -> usize {
-        let p = if self.pool > 0 {
-            self.pool
-        } else {
-            auto_pool(items)
-        };
-        p.max(self.k)
+        self.pool_or(auto_pool(items))
+    }
+
+    /// The pool for a library of `items` geometries: the one asked for, or
+    /// [`auto_geometry_pool`]; never below `k`.
+    pub fn geometry_pool_for(&self, items: usize) -> usize {
+        self.pool_or(auto_geometry_pool(items))
+    }
+
+    /// The pool asked for, else `auto`; never below `k`.
+    pub(crate) fn pool_or(&self, auto: usize) -> usize {
+        if self.pool > 0 { self.pool } else { auto }.max(self.k)
     }
 }
 
@@ -485,14 +502,39 @@ mod tests {
         assert_eq!(auto_pool(800), 64);
         assert_eq!(auto_pool(10_277), 256);
         assert_eq!(auto_pool(164_431), 1024);
+        assert_eq!(auto_geometry_pool(200), 64);
+        assert_eq!(auto_geometry_pool(800), 160);
+        assert_eq!(auto_geometry_pool(10_277), 2055);
+        assert_eq!(auto_geometry_pool(164_431), 4096);
         let auto = SolveOptions::default();
         assert_eq!(auto.pool_for(10_277), 256);
+        assert_eq!(auto.geometry_pool_for(10_277), 2055);
         let asked = SolveOptions {
             pool: 16,
             k: 20,
             ..Default::default()
         };
         assert_eq!(asked.pool_for(10_277), 20, "never below k");
+        assert_eq!(asked.geometry_pool_for(10_277), 20, "never below k");
+    }
+
+    #[test]
+    fn coarse_passes_cost_alike_and_keep_enough_samples() {
+        use geometry::coarse_step;
+        // 256 → 64: one pass at every 4th sample (as before there were several passes).
+        assert_eq!(coarse_step(256, 64, 490), 4);
+        // 1024 → 256 → 64: every 16th, then every 4th.
+        assert_eq!(coarse_step(1024, 64, 490), 16);
+        assert_eq!(coarse_step(256, 64, 490), 4);
+        // A pool that needs three passes would go to every 64th sample: never under 24 samples.
+        assert_eq!(
+            coarse_step(4096, 64, 490),
+            490 / geometry::COARSE_MIN_SAMPLES
+        );
+        assert_eq!(coarse_step(2055, 64, 490), 20);
+        // Nothing to narrow, or too few samples to thin.
+        assert_eq!(coarse_step(64, 64, 490), 1);
+        assert_eq!(coarse_step(1024, 64, 30), 1);
     }
 
     #[test]
