@@ -488,6 +488,7 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
         (64, 1, true, true, Final::Library),
         (256, 1, true, true, Final::Library),
         (1024, 1, true, true, Final::Library),
+        (4096, 1, true, true, Final::Library),
         (256, 4, true, true, Final::Library),
         (256, 1, true, true, Final::Fast),
     ];

@@ -164,6 +164,19 @@ mod tests {
     }
 
     #[test]
+    fn resultant_inverts_to_nine_digits_across_the_newton_range() {
+        // Up to the closed form beyond 50.
+        for i in 0..=400 {
+            let k = 0.05 * 1.02f64.powi(i);
+            if k > 49.0 {
+                break;
+            }
+            let k2 = kappa_from_resultant(mean_resultant(k));
+            assert!((k2 / k - 1.0).abs() < 1e-9, "{k} {k2}");
+        }
+    }
+
+    #[test]
     fn sampling_matches_mean() {
         let l = Vmf::new(5.0, dir_from_deg(30.0, 40.0));
         let n = 20_000;
