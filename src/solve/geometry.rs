@@ -11,9 +11,10 @@
 //! model the weights were fitted to), and the pool of `pool` (geometry, rotation) pairs takes the
 //! best of both rankings in turn: where an item's large weights amplify the difference between
 //! light lobes and binned columns, the first ranking misses it and the second does not. The
-//! pool's pairs are re-ranked with their own light lobes (a pool over [`COARSE_KEEP`] first at
-//! every [`COARSE_STEP`]-th sample, its best quarter then at all), and the best `k` geometries — each
-//! once, at its best rotation — evaluated with the fast or exact evaluator. With
+//! pool's pairs are re-ranked with their own light lobes (a pool over [`COARSE_KEEP`] narrowed
+//! first by coarse passes, each keeping its best quarter at a quarter of the next pass's
+//! samples, [`coarse_step`]), and the best `k` geometries — each once, at its best rotation —
+//! evaluated with the fast or exact evaluator. With
 //! `rerank_fast = false` both stages use the binned columns instead (the material's
 //! [`Response`]), for comparison.
 
@@ -75,13 +76,13 @@ impl ItemData {
 
 /// Stage 2 narrows a pool larger than this by coarse passes, each keeping its best quarter
 /// (at least this many), and evaluates what is left at every sample.
-pub const COARSE_KEEP: usize = 64;
+pub const COARSE_KEEP: usize = 32;
 
 /// Each coarse pass keeps a quarter of the pool, and uses a quarter of the next pass's samples.
 pub const COARSE_STEP: usize = 4;
 
-/// The fewest samples a coarse pass compares at.
-pub const COARSE_MIN_SAMPLES: usize = 24;
+/// The fewest samples a coarse pass compares at (about 16: at most every 30th of 490).
+pub const COARSE_MIN_SAMPLES: usize = 16;
 
 /// The sample stride of the coarse pass over a pool of `n` (narrowed to `floor` in the end) at
 /// `samples` samples: `COARSE_STEP` to the number of passes still to run, so that every pass
@@ -89,8 +90,9 @@ pub const COARSE_MIN_SAMPLES: usize = 24;
 /// than [`COARSE_MIN_SAMPLES`] samples.
 pub fn coarse_step(n: usize, floor: usize, samples: usize) -> usize {
     let (mut n, mut step) = (n, 1);
+    // The passes still to run, each keeping a quarter (at least `floor`), as the solver does.
     while n > floor.max(1) {
-        n = n.div_ceil(COARSE_STEP);
+        n = (n / COARSE_STEP).max(floor.max(1));
         step *= COARSE_STEP;
     }
     step.min((samples / COARSE_MIN_SAMPLES).max(1))

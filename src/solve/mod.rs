@@ -520,21 +520,23 @@ mod tests {
 
     #[test]
     fn coarse_passes_cost_alike_and_keep_enough_samples() {
-        use geometry::coarse_step;
-        // 256 → 64: one pass at every 4th sample (as before there were several passes).
-        assert_eq!(coarse_step(256, 64, 490), 4);
-        // 1024 → 256 → 64: every 16th, then every 4th.
-        assert_eq!(coarse_step(1024, 64, 490), 16);
-        assert_eq!(coarse_step(256, 64, 490), 4);
-        // A pool that needs three passes would go to every 64th sample: never under 24 samples.
+        use geometry::{coarse_step, COARSE_KEEP, COARSE_MIN_SAMPLES};
+        // 128 → 32: one pass at every 4th sample.
+        assert_eq!(coarse_step(128, COARSE_KEEP, 490), 4);
+        // 512 → 128 → 32: every 16th, then every 4th.
+        assert_eq!(coarse_step(512, COARSE_KEEP, 490), 16);
+        // paper16's 2055 → 513 → 128 → 32 would start at every 64th sample: never under
+        // COARSE_MIN_SAMPLES samples.
         assert_eq!(
-            coarse_step(4096, 64, 490),
-            490 / geometry::COARSE_MIN_SAMPLES
+            coarse_step(2055, COARSE_KEEP, 490),
+            490 / COARSE_MIN_SAMPLES
         );
-        assert_eq!(coarse_step(2055, 64, 490), 20);
+        assert_eq!(coarse_step(513, COARSE_KEEP, 490), 16);
+        // A pool just over the floor: one pass to the floor.
+        assert_eq!(coarse_step(40, COARSE_KEEP, 490), 4);
         // Nothing to narrow, or too few samples to thin.
-        assert_eq!(coarse_step(64, 64, 490), 1);
-        assert_eq!(coarse_step(1024, 64, 30), 1);
+        assert_eq!(coarse_step(32, COARSE_KEEP, 490), 1);
+        assert_eq!(coarse_step(1024, COARSE_KEEP, 20), 1);
     }
 
     #[test]
