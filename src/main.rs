@@ -168,9 +168,10 @@ enum Cmd {
         #[arg(long, default_value_t = 3)]
         beam: usize,
         /// General solver: pairs of the joint search (both libraries through their
-        /// representatives) re-ranked with their own data; the best pairs' materials are the
-        /// starts. 0: flat-patch and random starts only.
-        #[arg(long, default_value_t = 512)]
+        /// representatives) re-ranked with their own data (more than 512 narrowed by coarse
+        /// passes first); the best pairs' materials are the starts. 0: flat-patch and random
+        /// starts only.
+        #[arg(long, default_value_t = 1024)]
         joint_pool: usize,
         /// Weight of the colour term (Eq. 13), 0..1.
         #[arg(long, default_value_t = 0.0)]
@@ -228,9 +229,10 @@ enum Cmd {
         #[arg(long, default_value_t = 3)]
         beam: usize,
         /// General solver: pairs of the joint search (both libraries through their
-        /// representatives) re-ranked with their own data; the best pairs' materials are the
-        /// starts. 0: flat-patch and random starts only.
-        #[arg(long, default_value_t = 512)]
+        /// representatives) re-ranked with their own data (more than 512 narrowed by coarse
+        /// passes first); the best pairs' materials are the starts. 0: flat-patch and random
+        /// starts only.
+        #[arg(long, default_value_t = 1024)]
         joint_pool: usize,
         /// Solvers to run, comma-separated (each with its exhaustive scan) [default: all]
         #[arg(long, value_delimiter = ',')]

@@ -26,9 +26,10 @@ pub struct GeneralOptions {
     pub start_material: Option<usize>,
     /// Geometries of each geometry solve that get a material solve (the best pair continues).
     pub beam: usize,
-    /// Pairs of the joint search ([`super::joint`]) re-ranked with their own data; the best
-    /// pairs are candidates and their distinct materials the starts. 0 = no joint search
-    /// (flat-patch and random starts).
+    /// Pairs of the joint search ([`super::joint`]) re-ranked with their own data (more than
+    /// [`super::joint::JOINT_COARSE_KEEP`] narrowed by coarse passes first); the best pairs are
+    /// candidates and their distinct materials the starts. 0 = no joint search (flat-patch and
+    /// random starts).
     pub joint_pool: usize,
 }
 
@@ -40,7 +41,7 @@ impl Default for GeneralOptions {
             seed: 1,
             start_material: None,
             beam: 3,
-            joint_pool: 512,
+            joint_pool: 1024,
         }
     }
 }

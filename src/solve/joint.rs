@@ -27,6 +27,7 @@ use crate::error::{Error, Result};
 use crate::library::Library;
 use crate::lightlobes::LightPairs;
 use crate::material::parse_material;
+use crate::sampling::Samples;
 use faer::Mat;
 use rayon::prelude::*;
 use std::collections::HashMap;
@@ -91,6 +92,10 @@ const BASIS_ENERGY: f64 = 1.0 - 1e-6;
 
 /// Geometries whose coordinates are computed together (one matrix product).
 const GEOMETRY_BLOCK: usize = 256;
+
+/// A joint pool larger than this is narrowed by coarse passes before the pairs left are
+/// evaluated at every sample.
+pub const JOINT_COARSE_KEEP: usize = 512;
 
 /// Multiply-adds the pair scan may spend: 500 times the default library's scan (730 geometries
 /// × 160 materials × `13² + 13` = 2 × 10⁷). A paper-sized library (164,431 geometries × 4,101
@@ -313,45 +318,64 @@ pub fn search(
         .map(|i| kept[i])
         .collect();
     // Stage 2: each chosen pair with its own data; the lobes of a (geometry, rotation) are
-    // assembled once, the tables of a material read once.
-    let mut by_geo: HashMap<(usize, usize), Vec<(usize, f64)>> = HashMap::new();
-    for p in &chosen {
-        by_geo
-            .entry((p.geometry, p.rotation))
-            .or_default()
-            .push((p.material, p.search_error));
-    }
-    let groups: Vec<((usize, usize), Vec<(usize, f64)>)> = {
-        let mut v: Vec<_> = by_geo.into_iter().collect();
-        v.sort_by_key(|(k, _)| *k);
-        v
-    };
-    let ats: Vec<LightPairs> = rots
-        .iter()
-        .map(|(s, _)| LightPairs::new(&lobes.layout, super::dir_pairs(s)))
-        .collect();
-    let mut reranked: Vec<Pair> = groups
-        .par_iter()
-        .map(|((g, ri), ms)| {
-            let (s, t) = &rots[*ri];
-            let fixed = lobes.get(*g)?.fixed(&ats[*ri]);
-            ms.iter()
-                .map(|&(m, search_error)| {
-                    let pf = material_prefiltered(lib, &parse_material(&mitems[m].spec)?, Some(m))?;
-                    Ok(Pair {
-                        error: s.rel_error(t, &fixed.fbar(&pf)),
-                        search_error,
-                        geometry: *g,
-                        material: m,
-                        rotation: *ri,
+    // assembled once, the tables of a material read once. A pool over JOINT_COARSE_KEEP is
+    // narrowed first by coarse passes, as the geometry solver's ([`super::geometry::coarse_step`]).
+    let rerank = |chosen: &[Pair], at: &[(Samples, Vec<f64>, LightPairs)]| -> Result<Vec<Pair>> {
+        let mut by_geo: HashMap<(usize, usize), Vec<(usize, f64)>> = HashMap::new();
+        for p in chosen {
+            by_geo
+                .entry((p.geometry, p.rotation))
+                .or_default()
+                .push((p.material, p.search_error));
+        }
+        let mut groups: Vec<((usize, usize), Vec<(usize, f64)>)> = by_geo.into_iter().collect();
+        groups.sort_by_key(|(k, _)| *k);
+        Ok(groups
+            .par_iter()
+            .map(|((g, ri), ms)| {
+                let (s, t, lp) = &at[*ri];
+                let fixed = lobes.get(*g)?.fixed(lp);
+                ms.iter()
+                    .map(|&(m, search_error)| {
+                        let pf =
+                            material_prefiltered(lib, &parse_material(&mitems[m].spec)?, Some(m))?;
+                        Ok(Pair {
+                            error: s.rel_error(t, &fixed.fbar(&pf)),
+                            search_error,
+                            geometry: *g,
+                            material: m,
+                            rotation: *ri,
+                        })
                     })
-                })
-                .collect::<Result<Vec<_>>>()
-        })
-        .collect::<Result<Vec<_>>>()?
-        .into_iter()
-        .flatten()
-        .collect();
+                    .collect::<Result<Vec<_>>>()
+            })
+            .collect::<Result<Vec<_>>>()?
+            .into_iter()
+            .flatten()
+            .collect())
+    };
+    let at_every = |step: usize| -> Vec<(Samples, Vec<f64>, LightPairs)> {
+        rots.iter()
+            .map(|(s, t)| {
+                let (s, t) = s.every(step, t);
+                let lp = LightPairs::new(&lobes.layout, super::dir_pairs(&s));
+                (s, t, lp)
+            })
+            .collect()
+    };
+    let mut chosen = chosen;
+    let floor = JOINT_COARSE_KEEP.max(1);
+    while chosen.len() > floor {
+        let step = super::geometry::coarse_step(chosen.len(), floor, s0.pairs.len());
+        let coarse = rerank(&chosen, &at_every(step))?;
+        let errs: Vec<f64> = coarse.iter().map(|p| p.error).collect();
+        let keep = (chosen.len() / super::geometry::COARSE_STEP).max(floor);
+        chosen = smallest(&errs, keep)
+            .into_iter()
+            .map(|i| coarse[i])
+            .collect();
+    }
+    let mut reranked = rerank(&chosen, &at_every(1))?;
     reranked.sort_by(|a, b| {
         a.error
             .total_cmp(&b.error)
