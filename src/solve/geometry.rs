@@ -98,6 +98,25 @@ pub fn coarse_step(n: usize, floor: usize, samples: usize) -> usize {
     step.min((samples / COARSE_MIN_SAMPLES).max(1))
 }
 
+/// Narrow `pool` to at most `floor` entries by coarse passes over `samples` samples:
+/// `errors(pool, step)` gives each entry's error (in `pool`'s order) at every `step`-th
+/// sample, and each pass keeps the best quarter (at least `floor`).
+pub fn narrow<T: Copy>(
+    mut pool: Vec<T>,
+    floor: usize,
+    samples: usize,
+    errors: impl Fn(&[T], usize) -> Result<Vec<f64>>,
+) -> Result<Vec<T>> {
+    let floor = floor.max(1);
+    while pool.len() > floor {
+        let step = coarse_step(pool.len(), floor, samples);
+        let errs = errors(&pool, step)?;
+        let keep = (pool.len() / COARSE_STEP).max(floor);
+        pool = smallest(&errs, keep).into_iter().map(|i| pool[i]).collect();
+    }
+    Ok(pool)
+}
+
 /// Solve for the geometry with `material` fixed. `material_label` names it in the results.
 pub fn solve(
     lib: &Library,
@@ -247,31 +266,27 @@ pub fn solve_with(
     // A large pool is narrowed by successive coarse passes (each ranks the pool at every
     // `step`-th sample and keeps its best quarter), until at most COARSE_KEEP are left for
     // every sample.
-    let floor = COARSE_KEEP.max(opt.k);
-    let mut pool = pool;
-    if let ItemData::Lobes { lobes, pf } = &data {
-        while pool.len() > floor {
-            let step = coarse_step(pool.len(), floor, rots[0].samples.pairs.len());
-            let coarse: Vec<(Samples, LightPairs, Vec<f64>)> = rots
-                .iter()
-                .map(|r| {
-                    let (s, t) = r.samples.every(step, &r.target);
-                    let at = LightPairs::new(&layout, dir_pairs(&s));
-                    (s, at, t)
-                })
-                .collect();
-            let errs: Vec<f64> = pool
-                .par_iter()
-                .map(|&i| {
-                    let (_, j, ri) = scored[i];
-                    let (s, at, t) = &coarse[ri];
-                    Ok(s.rel_error(t, &lobes.get(j)?.fbar(pf, at)))
-                })
-                .collect::<Result<_>>()?;
-            let keep = (pool.len() / COARSE_STEP).max(floor);
-            pool = smallest(&errs, keep).into_iter().map(|i| pool[i]).collect();
-        }
-    }
+    let pool = match &data {
+        ItemData::Lobes { lobes, pf } => narrow(
+            pool,
+            COARSE_KEEP.max(opt.k),
+            rots[0].samples.pairs.len(),
+            |pool, step| {
+                let coarse: Vec<_> = rots
+                    .iter()
+                    .map(|r| super::coarse_at(&layout, &r.samples, &r.target, step))
+                    .collect();
+                pool.par_iter()
+                    .map(|&i| {
+                        let (_, j, ri) = scored[i];
+                        let (s, t, at) = &coarse[ri];
+                        Ok(s.rel_error(t, &lobes.get(j)?.fbar(pf, at)))
+                    })
+                    .collect()
+            },
+        )?,
+        ItemData::Binned { .. } => pool,
+    };
     let mut reranked: Vec<(f64, f64, usize, usize)> = pool
         .par_iter()
         .map(|&i| {

@@ -320,61 +320,49 @@ pub fn search(
     // Stage 2: each chosen pair with its own data; the lobes of a (geometry, rotation) are
     // assembled once, the tables of a material read once. A pool over JOINT_COARSE_KEEP is
     // narrowed first by coarse passes, as the geometry solver's ([`super::geometry::coarse_step`]).
+    // Each chosen pair's error at `at`'s samples (per rotation), in `chosen`'s order.
     let rerank = |chosen: &[Pair], at: &[(Samples, Vec<f64>, LightPairs)]| -> Result<Vec<Pair>> {
-        let mut by_geo: HashMap<(usize, usize), Vec<(usize, f64)>> = HashMap::new();
-        for p in chosen {
+        let mut by_geo: HashMap<(usize, usize), Vec<(usize, usize)>> = HashMap::new();
+        for (i, p) in chosen.iter().enumerate() {
             by_geo
                 .entry((p.geometry, p.rotation))
                 .or_default()
-                .push((p.material, p.search_error));
+                .push((i, p.material));
         }
-        let mut groups: Vec<((usize, usize), Vec<(usize, f64)>)> = by_geo.into_iter().collect();
+        let mut groups: Vec<((usize, usize), Vec<(usize, usize)>)> = by_geo.into_iter().collect();
         groups.sort_by_key(|(k, _)| *k);
-        Ok(groups
+        let errs: Vec<Vec<(usize, f64)>> = groups
             .par_iter()
             .map(|((g, ri), ms)| {
                 let (s, t, lp) = &at[*ri];
                 let fixed = lobes.get(*g)?.fixed(lp);
                 ms.iter()
-                    .map(|&(m, search_error)| {
+                    .map(|&(i, m)| {
                         let pf =
                             material_prefiltered(lib, &parse_material(&mitems[m].spec)?, Some(m))?;
-                        Ok(Pair {
-                            error: s.rel_error(t, &fixed.fbar(&pf)),
-                            search_error,
-                            geometry: *g,
-                            material: m,
-                            rotation: *ri,
-                        })
+                        Ok((i, s.rel_error(t, &fixed.fbar(&pf))))
                     })
                     .collect::<Result<Vec<_>>>()
             })
-            .collect::<Result<Vec<_>>>()?
-            .into_iter()
-            .flatten()
-            .collect())
+            .collect::<Result<_>>()?;
+        let mut out = chosen.to_vec();
+        for (i, e) in errs.into_iter().flatten() {
+            out[i].error = e;
+        }
+        Ok(out)
     };
     let at_every = |step: usize| -> Vec<(Samples, Vec<f64>, LightPairs)> {
         rots.iter()
-            .map(|(s, t)| {
-                let (s, t) = s.every(step, t);
-                let lp = LightPairs::new(&lobes.layout, super::dir_pairs(&s));
-                (s, t, lp)
-            })
+            .map(|(s, t)| super::coarse_at(&lobes.layout, s, t, step))
             .collect()
     };
-    let mut chosen = chosen;
-    let floor = JOINT_COARSE_KEEP.max(1);
-    while chosen.len() > floor {
-        let step = super::geometry::coarse_step(chosen.len(), floor, s0.pairs.len());
-        let coarse = rerank(&chosen, &at_every(step))?;
-        let errs: Vec<f64> = coarse.iter().map(|p| p.error).collect();
-        let keep = (chosen.len() / super::geometry::COARSE_STEP).max(floor);
-        chosen = smallest(&errs, keep)
-            .into_iter()
-            .map(|i| coarse[i])
-            .collect();
-    }
+    let chosen =
+        super::geometry::narrow(chosen, JOINT_COARSE_KEEP, s0.pairs.len(), |pool, step| {
+            Ok(rerank(pool, &at_every(step))?
+                .iter()
+                .map(|p| p.error)
+                .collect())
+        })?;
     let mut reranked = rerank(&chosen, &at_every(1))?;
     reranked.sort_by(|a, b| {
         a.error

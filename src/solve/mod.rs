@@ -480,6 +480,19 @@ pub fn psi_angle(i: usize, psi: usize) -> f64 {
     std::f64::consts::TAU * i as f64 / psi.max(1) as f64
 }
 
+/// Every `step`-th of the samples `s` with the target values `t` there, and their pairs placed
+/// in the light-lobe table of `layout` (a coarse pass's samples; `step` 1: all of them).
+pub fn coarse_at(
+    layout: &crate::gamma::GammaLayout,
+    s: &Samples,
+    t: &[f64],
+    step: usize,
+) -> (Samples, Vec<f64>, crate::lightlobes::LightPairs) {
+    let (s, t) = s.every(step, t);
+    let at = crate::lightlobes::LightPairs::new(layout, dir_pairs(&s));
+    (s, t, at)
+}
+
 /// The heightfield of a library geometry item.
 pub fn library_heightfield(spec: &str) -> Result<Heightfield> {
     crate::generators::parse_generator(spec)?.build()
