@@ -99,9 +99,17 @@ fn an_interrupted_build_resumes_and_a_damaged_chunk_is_rebuilt() {
     // "Killed" after half the chunks: only shard 0 of 2 exists.
     let first = build_shard(&p, &base, &d, Shard { index: 0, count: 2 }, false, &QUIET).unwrap();
     assert!(first.chunks_built > 0);
-    // A merge now names what is missing.
-    let e = merge_shards(&d, &QUIET, true).err().unwrap().to_string();
+    // A merge now names what is missing, and removes no chunk (a merge removes each chunk it
+    // joins, but checks first that all are there).
+    let count = || std::fs::read_dir(d.join("chunks")).unwrap().count();
+    let before = count();
+    let e = merge_shards(&d, &QUIET, false).err().unwrap().to_string();
     assert!(e.contains("chunk") && e.contains("missing shards"), "{e}");
+    assert_eq!(
+        count(),
+        before,
+        "a merge that cannot finish removes no chunk"
+    );
     // Damage one finished chunk: the resumed build redoes only that one.
     let chunk = d.join("chunks").join("geometry-000000.bsa");
     let mut bytes = std::fs::read(&chunk).unwrap();

@@ -542,41 +542,63 @@ impl BlockSource for ItemMatrix<'_> {
     }
 }
 
-/// Join the chunks of `kind` into one array file; returns its checksum.
-#[allow(clippy::too_many_arguments)]
-fn assemble(
-    dir: &Path,
-    kind: &str,
-    name: &str,
+/// The chunks of one kind of item, as the merge joins them.
+struct ChunkSet<'a> {
+    kind: &'a str,
+    name: &'a str,
     dtype: Dtype,
     items: usize,
     len: usize,
-    chunk: usize,
-    out: &Path,
-    bar: &Bar,
-) -> Result<String> {
-    let mut w = ArrayWriter::create(out, name, dtype, &[items, len])?;
-    for k in 0..items.div_ceil(chunk) {
-        let n = chunk.min(items - k * chunk);
-        let p = chunk_path(dir, kind, k);
-        let f = ArrayFile::open(
-            &p,
+}
+
+impl ChunkSet<'_> {
+    /// Chunk `k`, opened with its header, dtype and shape checked (and its checksum when
+    /// `verify`).
+    fn open(&self, dir: &Path, chunk: usize, k: usize, verify: bool) -> Result<ArrayFile> {
+        let n = chunk.min(self.items - k * chunk);
+        ArrayFile::open(
+            &chunk_path(dir, self.kind, k),
             &Expect {
-                dtype: Some(dtype),
-                shape: Some(&[n, len]),
-                verify: true,
+                dtype: Some(self.dtype),
+                shape: Some(&[n, self.len]),
+                verify,
                 ..Default::default()
             },
         )
         .map_err(|e| {
             e.within(format!(
-                "merge: {kind} chunk {k} (build the missing shards first)"
+                "merge: {} chunk {k} (build the missing shards first)",
+                self.kind
             ))
-        })?;
-        w.write(f.bytes())?;
-        bar.inc(1);
+        })
     }
-    w.finish()
+
+    /// Join the chunks into one array file `out`; returns its checksum. With `consume`, each
+    /// chunk is removed once it is appended, so the merge needs the library's size in free disk
+    /// once, not twice (123 GB for `paper`). Call [`ChunkSet::open`] on every chunk of every set
+    /// first: a merge started before all shards are built then removes nothing.
+    fn assemble(
+        &self,
+        dir: &Path,
+        chunk: usize,
+        out: &Path,
+        consume: bool,
+        bar: &Bar,
+    ) -> Result<String> {
+        let mut w = ArrayWriter::create(out, self.name, self.dtype, &[self.items, self.len])?;
+        for k in 0..self.items.div_ceil(chunk) {
+            let f = self.open(dir, chunk, k, true)?;
+            w.write(f.bytes())?;
+            if consume {
+                let p = f.path.clone();
+                drop(f);
+                std::fs::remove_file(&p)
+                    .map_err(|e| Error::io(&p, "remove the joined chunk", e))?;
+            }
+            bar.inc(1);
+        }
+        w.finish()
+    }
 }
 
 fn mat_f32_rows(m: &Mat<f64>) -> Vec<f32> {
@@ -825,46 +847,51 @@ pub fn merge(
         (2 * geos.len().div_ceil(prof.chunk) + mats.len().div_ceil(prof.chunk)) as u64,
         "merge: joining chunks",
     );
-    let gpath = dir.join("geometry/gamma.bsa");
-    let sum = assemble(
-        dir,
-        "geometry",
-        "gamma",
-        Dtype::F16,
-        geos.len(),
-        rows,
-        prof.chunk,
-        &gpath,
-        &bar,
-    )?;
-    files.push(entry(dir, "geometry/gamma.bsa", sum));
-    let lpath = dir.join("geometry/lobes.bsa");
-    let sum = assemble(
-        dir,
-        "lobes",
-        "light-lobes",
-        Dtype::F32,
-        geos.len(),
-        record_len(&layout, prof.geometry.lobe_clusters),
-        prof.chunk,
-        &lpath,
-        &bar,
-    )?;
-    files.push(entry(dir, "geometry/lobes.bsa", sum));
-    let mpath = dir.join("material/prefiltered.bsa");
-    let sum = assemble(
-        dir,
-        "material",
-        "prefiltered",
-        Dtype::F32,
-        mats.len(),
-        tlen,
-        prof.chunk,
-        &mpath,
-        &bar,
-    )?;
+    let sets = [
+        (
+            "geometry/gamma.bsa",
+            ChunkSet {
+                kind: "geometry",
+                name: "gamma",
+                dtype: Dtype::F16,
+                items: geos.len(),
+                len: rows,
+            },
+        ),
+        (
+            "geometry/lobes.bsa",
+            ChunkSet {
+                kind: "lobes",
+                name: "light-lobes",
+                dtype: Dtype::F32,
+                items: geos.len(),
+                len: record_len(&layout, prof.geometry.lobe_clusters),
+            },
+        ),
+        (
+            "material/prefiltered.bsa",
+            ChunkSet {
+                kind: "material",
+                name: "prefiltered",
+                dtype: Dtype::F32,
+                items: mats.len(),
+                len: tlen,
+            },
+        ),
+    ];
+    // Every chunk present, with the right header and shape, before any is joined (and removed).
+    for (_, set) in &sets {
+        for k in 0..set.items.div_ceil(prof.chunk) {
+            set.open(dir, prof.chunk, k, false)?;
+        }
+    }
+    // A merge interrupted while joining has removed the chunks it joined: `library build`
+    // builds them again (each depends only on the profile, the seed and its index).
+    for (rel, set) in &sets {
+        let sum = set.assemble(dir, prof.chunk, &dir.join(rel), !keep_chunks, &bar)?;
+        files.push(entry(dir, rel, sum));
+    }
     bar.finish();
-    files.push(entry(dir, "material/prefiltered.bsa", sum));
     times.assemble = t.elapsed().as_secs_f64();
 
     // Colours: each BRDF's own average colour and its colour-shift multipliers.
@@ -901,11 +928,11 @@ pub fn merge(
     )?;
     times.colours = t.elapsed().as_secs_f64();
 
-    let mfile = ArrayFile::open(&mpath, &Expect::default())?;
+    let mfile = ArrayFile::open(&dir.join("material/prefiltered.bsa"), &Expect::default())?;
     let material = compress(
         dir, "material", &mfile, &prof, true, true, &mut files, &stages,
     )?;
-    let gfile = ArrayFile::open(&gpath, &Expect::default())?;
+    let gfile = ArrayFile::open(&dir.join("geometry/gamma.bsa"), &Expect::default())?;
     let geometry = compress(
         dir, "geometry", &gfile, &prof, false, false, &mut files, &stages,
     )?;
