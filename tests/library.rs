@@ -127,6 +127,51 @@ fn an_interrupted_build_resumes_and_a_damaged_chunk_is_rebuilt() {
 }
 
 #[test]
+fn a_merge_stopped_after_joining_resumes_without_rebuilding_the_joined_parts() {
+    let (p, base) = tiny();
+    let clean = fresh("join-clean");
+    build_all(&p, &base, &clean, &QUIET, true, false).unwrap();
+    let n_geo_chunks = p.geometry_count().div_ceil(p.chunk);
+    // The state of a merge killed while joining the light lobes: the binned columns are joined
+    // and their chunks removed, the first light-lobe chunk is joined (removed) but the lobes'
+    // joined file was never renamed into place, nothing is compressed, no manifest.
+    let d = fresh("join-stopped");
+    build_shard(&p, &base, &d, Shard::ALL, false, &QUIET).unwrap();
+    std::fs::create_dir_all(d.join("geometry")).unwrap();
+    std::fs::copy(
+        clean.join("geometry/gamma.bsa"),
+        d.join("geometry/gamma.bsa"),
+    )
+    .unwrap();
+    for k in 0..n_geo_chunks {
+        std::fs::remove_file(d.join(format!("chunks/geometry-{k:06}.bsa"))).unwrap();
+    }
+    std::fs::remove_file(d.join("chunks/lobes-000000.bsa")).unwrap();
+    // A merge now cannot finish (a light-lobe chunk is gone) and says which.
+    let e = merge_shards(&d, &QUIET, false).err().unwrap().to_string();
+    assert!(e.contains("lobes chunk 0"), "{e}");
+    // The resumed build rebuilds that one chunk only: the joined binned columns stand for theirs.
+    let rep = build_shard(&p, &base, &d, Shard::ALL, false, &QUIET).unwrap();
+    assert_eq!(rep.chunks_built, 1);
+    merge_shards(&d, &QUIET, false).unwrap();
+    assert_eq!(data_files(&d), data_files(&clean));
+    assert_eq!(manifest_without_build(&d), manifest_without_build(&clean));
+    // A corrupted joined array does not stand for anything: its chunks are built again.
+    let gamma = d.join("geometry/gamma.bsa");
+    let mut bytes = std::fs::read(&gamma).unwrap();
+    let n = bytes.len();
+    bytes[n - 5] ^= 0x22;
+    std::fs::write(&gamma, &bytes).unwrap();
+    std::fs::remove_file(d.join("manifest.json")).unwrap();
+    let rep = build_shard(&p, &base, &d, Shard::ALL, false, &QUIET).unwrap();
+    assert_eq!(rep.chunks_built, n_geo_chunks);
+    merge_shards(&d, &QUIET, false).unwrap();
+    assert_eq!(data_files(&d), data_files(&clean));
+    let _ = std::fs::remove_dir_all(d);
+    let _ = std::fs::remove_dir_all(clean);
+}
+
+#[test]
 fn corrupted_truncated_and_foreign_files_are_named_errors_and_opening_is_lazy() {
     let (p, base) = tiny();
     let d = fresh("bad");
@@ -232,11 +277,23 @@ fn a_finished_library_is_not_rebuilt_unless_forced() {
     assert_eq!(rep.chunks_built + rep.chunks_reused, 0);
     assert!(!d.join("chunks").exists());
     assert_eq!(std::fs::read(d.join("manifest.json")).unwrap(), manifest);
-    // A library missing a file it lists is not finished: it is rebuilt.
+    // A library missing a file it lists is not finished: it is merged again, from its joined
+    // arrays (their checksums hold), without building a chunk.
     std::fs::remove_file(d.join("material/x.bsa")).unwrap();
+    let rep = build_shard(&p, &base, &d, Shard::ALL, false, &QUIET).unwrap();
+    assert!(!rep.already_built);
+    assert_eq!(
+        rep.chunks_built, 0,
+        "the joined arrays stand for the chunks"
+    );
+    merge_shards(&d, &QUIET, false).unwrap();
+    assert_eq!(data_files(&d), files);
+    // Without them it is rebuilt from chunks.
+    std::fs::remove_file(d.join("material/x.bsa")).unwrap();
+    std::fs::remove_file(d.join("material/prefiltered.bsa")).unwrap();
     build_all(&p, &base, &d, &QUIET, true, false).unwrap();
     assert!(
-        d.join("chunks").exists(),
+        d.join("chunks/material-000000.bsa").exists(),
         "the damaged library was not rebuilt"
     );
     assert_eq!(data_files(&d), files);

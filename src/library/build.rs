@@ -6,8 +6,10 @@
 //! `k ≡ i mod N`), skipping chunks already on disk whose checksum holds, so a killed build
 //! resumes where it stopped and shards can run on different machines over a shared directory. A
 //! directory that already holds the finished library of the profile is left alone unless forced.
-//! `merge` checks that every chunk is present, joins them into `geometry/gamma.bsa` and
-//! `material/prefiltered.bsa`, compresses both (material: SVD of the Gram matrix; geometry:
+//! `merge` checks that every chunk is present, joins them into `geometry/gamma.bsa`,
+//! `geometry/lobes.bsa` and `material/prefiltered.bsa` (removing each chunk once joined; a
+//! verified joined array of a merge that stopped stands for its chunks, in the build and in the
+//! merge, so a stopped merge resumes after its last join), compresses both (material: SVD of the Gram matrix; geometry:
 //! streaming randomized SVD), picks representatives by CX, and writes `manifest.json` last: a
 //! directory with a manifest is a complete library. Every item depends only on the profile, the seed and its index, and every
 //! reduction has a fixed order, so the same profile and seed give byte-identical array files
@@ -137,19 +139,6 @@ pub struct BuildReport {
     pub materials_built: usize,
 }
 
-/// A chunk on disk whose header and checksum hold (a resumed build keeps it).
-fn chunk_ok(path: &Path, shape: &[usize]) -> bool {
-    ArrayFile::open(
-        path,
-        &Expect {
-            shape: Some(shape),
-            verify: true,
-            ..Default::default()
-        },
-    )
-    .is_ok()
-}
-
 /// Build this shard's chunks in `dir` (resuming: valid chunks are kept).
 ///
 /// Relative `texture_dirs` / `merl_dirs` of `prof` are resolved against `base` (the profile
@@ -202,13 +191,22 @@ pub fn build_shard(
         std::fs::remove_file(&manifest)
             .map_err(|e| Error::io(&manifest, "remove the old manifest", e))?;
     }
-    std::fs::create_dir_all(dir.join("chunks"))
-        .map_err(|e| Error::io(&dir.join("chunks"), "create the chunk directory", e))?;
     let geos = geometry_items(prof, base)?;
     let mats = material_items(prof, base)?;
+    let [gamma, lobes, table] = parts(prof, geos.len(), mats.len());
+    if force {
+        // The joined arrays of an earlier merge would stand in for chunks (see `build_chunks`).
+        for p in [&gamma, &lobes, &table] {
+            let path = dir.join(p.joined);
+            if path.exists() {
+                std::fs::remove_file(&path)
+                    .map_err(|e| Error::io(&path, "remove the old joined array", e))?;
+            }
+        }
+    }
+    std::fs::create_dir_all(dir.join("chunks"))
+        .map_err(|e| Error::io(&dir.join("chunks"), "create the chunk directory", e))?;
     let layout = gamma_layout(prof);
-    let rows = layout.rows();
-    let tlen = table_len(prof);
     let pcfg = prefilter_config(prof);
     let chunk = prof.chunk;
     let mine = |n: usize| -> Vec<usize> {
@@ -217,23 +215,9 @@ pub fn build_shard(
             .collect()
     };
 
-    let lobes_len = record_len(&layout, prof.geometry.lobe_clusters);
     let (n, secs) = build_chunks(
         dir,
-        &[
-            Output {
-                kind: "geometry",
-                name: "gamma-chunk",
-                dtype: Dtype::F16,
-                len: rows,
-            },
-            Output {
-                kind: "lobes",
-                name: "lobes-chunk",
-                dtype: Dtype::F32,
-                len: lobes_len,
-            },
-        ],
+        &[&gamma, &lobes],
         &geos,
         chunk,
         &mine,
@@ -252,12 +236,7 @@ pub fn build_shard(
     rep.geometry_seconds = secs;
     let (n, secs) = build_chunks(
         dir,
-        &[Output {
-            kind: "material",
-            name: "prefiltered-chunk",
-            dtype: Dtype::F32,
-            len: tlen,
-        }],
+        &[&table],
         &mats,
         chunk,
         &mine,
@@ -275,21 +254,16 @@ pub fn build_shard(
     Ok(rep)
 }
 
-/// One array a chunk build writes per chunk.
-struct Output<'a> {
-    kind: &'a str,
-    name: &'a str,
-    dtype: Dtype,
-    len: usize,
-}
-
 /// Build this shard's missing chunks of one item kind: items in parallel within a chunk, each
-/// chunk written atomically as one array file per output (`item_bytes` returns one byte vector
-/// per output). Returns the items built and the seconds spent.
+/// chunk written atomically as one array file per part (`item_bytes` returns one byte vector
+/// per part). A chunk is missing when one of its parts has neither a valid chunk file (header,
+/// shape and checksum) nor a valid joined array: a merge stopped after joining a part has
+/// removed that part's chunks, and its joined array stands in for them. Returns the items built
+/// and the seconds spent.
 #[allow(clippy::too_many_arguments)]
 fn build_chunks<T: Sync>(
     dir: &Path,
-    outputs: &[Output],
+    outputs: &[&Part],
     items: &[T],
     chunk: usize,
     mine: &dyn Fn(usize) -> Vec<usize>,
@@ -299,14 +273,28 @@ fn build_chunks<T: Sync>(
     item_bytes: impl Fn(&T) -> Result<Vec<Vec<u8>>> + Sync,
 ) -> Result<(usize, f64)> {
     let size = |k: usize| chunk.min(items.len() - k * chunk);
+    let joined: Vec<bool> = outputs.iter().map(|o| o.open_joined(dir).is_ok()).collect();
+    if joined.iter().any(|&j| j) {
+        let names: Vec<&str> = outputs
+            .iter()
+            .zip(&joined)
+            .filter(|(_, &j)| j)
+            .map(|(o, _)| o.joined)
+            .collect();
+        progress.note(&format!(
+            "library: {} already joined by an earlier merge (checksums hold); their chunks are not needed",
+            names.join(", ")
+        ));
+    }
     let all = mine(items.len());
     let todo: Vec<usize> = all
         .iter()
         .copied()
         .filter(|&k| {
-            !outputs
+            outputs
                 .iter()
-                .all(|o| chunk_ok(&chunk_path(dir, o.kind, k), &[size(k), o.len]))
+                .zip(&joined)
+                .any(|(o, &j)| !j && o.open_chunk(dir, chunk, k, true).is_err())
         })
         .collect();
     rep.chunks_reused += all.len() - todo.len();
@@ -347,7 +335,7 @@ fn build_chunks<T: Sync>(
                     }
                     write_array(
                         &chunk_path(dir, o.kind, k),
-                        o.name,
+                        o.chunk_name,
                         o.dtype,
                         &[n, o.len],
                         &bytes,
@@ -542,25 +530,70 @@ impl BlockSource for ItemMatrix<'_> {
     }
 }
 
-/// The chunks of one kind of item, as the merge joins them.
-struct ChunkSet<'a> {
-    kind: &'a str,
-    name: &'a str,
+/// One array of a library that the build writes in chunks (`chunks/KIND-NNNNNN.bsa`) and the
+/// merge joins into one file (`joined`). The build and the merge read their shapes from here.
+struct Part {
+    /// The chunk files' prefix.
+    kind: &'static str,
+    /// The array name inside a chunk file.
+    chunk_name: &'static str,
+    /// The joined file, relative to the library directory, and its array name.
+    joined: &'static str,
+    name: &'static str,
     dtype: Dtype,
     items: usize,
     len: usize,
 }
 
-impl ChunkSet<'_> {
+/// The three chunked arrays of a profile's library: the geometries' binned columns and light
+/// lobes (one chunk build writes both) and the materials' prefiltered tables.
+fn parts(prof: &LibraryProfile, geometries: usize, materials: usize) -> [Part; 3] {
+    let layout = gamma_layout(prof);
+    [
+        Part {
+            kind: "geometry",
+            chunk_name: "gamma-chunk",
+            joined: "geometry/gamma.bsa",
+            name: "gamma",
+            dtype: Dtype::F16,
+            items: geometries,
+            len: layout.rows(),
+        },
+        Part {
+            kind: "lobes",
+            chunk_name: "lobes-chunk",
+            joined: "geometry/lobes.bsa",
+            name: "light-lobes",
+            dtype: Dtype::F32,
+            items: geometries,
+            len: record_len(&layout, prof.geometry.lobe_clusters),
+        },
+        Part {
+            kind: "material",
+            chunk_name: "prefiltered-chunk",
+            joined: "material/prefiltered.bsa",
+            name: "prefiltered",
+            dtype: Dtype::F32,
+            items: materials,
+            len: table_len(prof),
+        },
+    ]
+}
+
+impl Part {
+    /// Items in chunk `k`.
+    fn chunk_items(&self, chunk: usize, k: usize) -> usize {
+        chunk.min(self.items - k * chunk)
+    }
+
     /// Chunk `k`, opened with its header, dtype and shape checked (and its checksum when
     /// `verify`).
-    fn open(&self, dir: &Path, chunk: usize, k: usize, verify: bool) -> Result<ArrayFile> {
-        let n = chunk.min(self.items - k * chunk);
+    fn open_chunk(&self, dir: &Path, chunk: usize, k: usize, verify: bool) -> Result<ArrayFile> {
         ArrayFile::open(
             &chunk_path(dir, self.kind, k),
             &Expect {
                 dtype: Some(self.dtype),
-                shape: Some(&[n, self.len]),
+                shape: Some(&[self.chunk_items(chunk, k), self.len]),
                 verify,
                 ..Default::default()
             },
@@ -573,21 +606,29 @@ impl ChunkSet<'_> {
         })
     }
 
-    /// Join the chunks into one array file `out`; returns its checksum. With `consume`, each
-    /// chunk is removed once it is appended, so the merge needs the library's size in free disk
-    /// once, not twice (123 GB for `paper`). Call [`ChunkSet::open`] on every chunk of every set
+    /// The joined array, its checksum verified: a merge that stopped after joining this part
+    /// (and removed its chunks) left it, and neither the build nor the merge redo it.
+    fn open_joined(&self, dir: &Path) -> Result<ArrayFile> {
+        ArrayFile::open(
+            &dir.join(self.joined),
+            &Expect {
+                name: Some(self.name),
+                dtype: Some(self.dtype),
+                shape: Some(&[self.items, self.len]),
+                verify: true,
+            },
+        )
+    }
+
+    /// Join the chunks into the joined file; returns its checksum. With `consume`, each chunk
+    /// is removed once it is appended, so the merge needs the library's size in free disk once,
+    /// not twice (123 GB for `paper`). Call [`Part::open_chunk`] on every chunk of every part
     /// first: a merge started before all shards are built then removes nothing.
-    fn assemble(
-        &self,
-        dir: &Path,
-        chunk: usize,
-        out: &Path,
-        consume: bool,
-        bar: &Bar,
-    ) -> Result<String> {
-        let mut w = ArrayWriter::create(out, self.name, self.dtype, &[self.items, self.len])?;
+    fn assemble(&self, dir: &Path, chunk: usize, consume: bool, bar: &Bar) -> Result<String> {
+        let out = dir.join(self.joined);
+        let mut w = ArrayWriter::create(&out, self.name, self.dtype, &[self.items, self.len])?;
         for k in 0..self.items.div_ceil(chunk) {
-            let f = self.open(dir, chunk, k, true)?;
+            let f = self.open_chunk(dir, chunk, k, true)?;
             w.write(f.bytes())?;
             if consume {
                 let p = f.path.clone();
@@ -839,57 +880,47 @@ pub fn merge(
     let prof = LibraryProfile::parse(&ptext, &dir.join("profile.toml").display().to_string())?;
     let geos = geometry_items(&prof, base)?;
     let mats = material_items(&prof, base)?;
-    let layout = gamma_layout(&prof);
-    let (rows, tlen) = (layout.rows(), table_len(&prof));
+    let parts = parts(&prof, geos.len(), mats.len());
+    let (rows, tlen) = (parts[0].len, parts[2].len);
     let mut files = Vec::new();
     let t = Instant::now();
+    // Each part is joined from its chunks when every chunk is there, with the right header and
+    // shape; otherwise a verified joined array left by an earlier merge (which removed the
+    // chunks it joined) stands for it; otherwise the merge stops, naming the first missing
+    // chunk, before it joins (and removes) anything.
+    let mut joined = Vec::new();
+    for p in &parts {
+        let missing = (0..p.items.div_ceil(prof.chunk))
+            .find_map(|k| p.open_chunk(dir, prof.chunk, k, false).err());
+        joined.push(match missing {
+            None => None,
+            Some(e) => match p.open_joined(dir) {
+                Ok(f) => Some(f.header.checksum.clone()),
+                Err(_) => return Err(e),
+            },
+        });
+    }
     let bar = progress.bar(
-        (2 * geos.len().div_ceil(prof.chunk) + mats.len().div_ceil(prof.chunk)) as u64,
+        parts
+            .iter()
+            .zip(&joined)
+            .filter(|(_, j)| j.is_none())
+            .map(|(p, _)| p.items.div_ceil(prof.chunk) as u64)
+            .sum(),
         "merge: joining chunks",
     );
-    let sets = [
-        (
-            "geometry/gamma.bsa",
-            ChunkSet {
-                kind: "geometry",
-                name: "gamma",
-                dtype: Dtype::F16,
-                items: geos.len(),
-                len: rows,
-            },
-        ),
-        (
-            "geometry/lobes.bsa",
-            ChunkSet {
-                kind: "lobes",
-                name: "light-lobes",
-                dtype: Dtype::F32,
-                items: geos.len(),
-                len: record_len(&layout, prof.geometry.lobe_clusters),
-            },
-        ),
-        (
-            "material/prefiltered.bsa",
-            ChunkSet {
-                kind: "material",
-                name: "prefiltered",
-                dtype: Dtype::F32,
-                items: mats.len(),
-                len: tlen,
-            },
-        ),
-    ];
-    // Every chunk present, with the right header and shape, before any is joined (and removed).
-    for (_, set) in &sets {
-        for k in 0..set.items.div_ceil(prof.chunk) {
-            set.open(dir, prof.chunk, k, false)?;
-        }
-    }
-    // A merge interrupted while joining has removed the chunks it joined: `library build`
-    // builds them again (each depends only on the profile, the seed and its index).
-    for (rel, set) in &sets {
-        let sum = set.assemble(dir, prof.chunk, &dir.join(rel), !keep_chunks, &bar)?;
-        files.push(entry(dir, rel, sum));
+    for (p, done) in parts.iter().zip(joined) {
+        let sum = match done {
+            Some(sum) => {
+                progress.note(&format!(
+                    "merge: {} was joined by an earlier merge; kept",
+                    p.joined
+                ));
+                sum
+            }
+            None => p.assemble(dir, prof.chunk, !keep_chunks, &bar)?,
+        };
+        files.push(entry(dir, p.joined, sum));
     }
     bar.finish();
     times.assemble = t.elapsed().as_secs_f64();
