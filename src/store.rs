@@ -225,6 +225,8 @@ pub struct ArrayFile {
     pub verified: bool,
     map: Mmap,
     offset: usize,
+    /// The file itself, for streaming reads that should not map pages ([`ArrayFile::read_data`]).
+    file: File,
 }
 
 /// What the caller expects of an array file; `None` accepts anything.
@@ -311,6 +313,7 @@ impl ArrayFile {
             verified: false,
             map,
             offset,
+            file: f,
         };
         if expect.verify {
             file.verify()?;
@@ -321,7 +324,19 @@ impl ArrayFile {
 
     /// Check the data against the header's checksum.
     pub fn verify(&mut self) -> Result<()> {
-        let got = checksum(self.bytes());
+        // Read in pieces, not through the map: hashing a file larger than memory through the
+        // map would make every page of it resident in this process (the same digest as
+        // [`checksum`] of the whole).
+        const PIECE: usize = 16 << 20;
+        let n = self.header.data_bytes();
+        let mut h = Xxh3::new();
+        let mut buf = vec![0u8; PIECE.min(n)];
+        for start in (0..n).step_by(PIECE) {
+            let piece = &mut buf[..PIECE.min(n - start)];
+            self.read_data(start, piece)?;
+            h.update(piece);
+        }
+        let got = format!("{:032x}", h.digest128());
         if got != self.header.checksum {
             return Err(Error::new(
                 self.path.display().to_string(),
@@ -337,6 +352,28 @@ impl ArrayFile {
 
     pub fn bytes(&self) -> &[u8] {
         &self.map[self.offset..]
+    }
+
+    /// Copy data bytes `start..start + buf.len()` into `buf` with a positioned read instead of
+    /// through the map. For streaming passes over arrays larger than memory: pages read through
+    /// the map stay in this process's resident set (a randomized SVD over the 14 GB binned
+    /// matrix of `paper4` through the map peaked at 15 GB of RSS for 1.5 GB of its own), while a
+    /// read copies from the page cache and maps nothing.
+    pub fn read_data(&self, start: usize, buf: &mut [u8]) -> Result<()> {
+        use std::os::unix::fs::FileExt;
+        if start + buf.len() > self.header.data_bytes() {
+            return Err(Error::new(
+                self.path.display().to_string(),
+                format!(
+                    "read of bytes {start}..{} past the data's {} bytes",
+                    start + buf.len(),
+                    self.header.data_bytes()
+                ),
+            ));
+        }
+        self.file
+            .read_exact_at(buf, (self.offset + start) as u64)
+            .map_err(|e| Error::io(&self.path, "read the library array", e))
     }
 
     fn typed<T: bytemuck::Pod>(&self, d: Dtype) -> Result<&[T]> {

@@ -472,18 +472,36 @@ impl ItemMatrix<'_> {
                 }
             }
         };
-        let item = |j: usize| j * self.len + rows.start..j * self.len + rows.end;
+        // Positioned reads, not the map: a pass over a matrix larger than memory would
+        // otherwise keep every page it read resident (`ArrayFile::read_data`).
+        let size = self.file.header.dtype.size();
+        let at = |j: usize| (j * self.len + rows.start) * size;
+        let mut err = None;
         match self.file.header.dtype {
             Dtype::F16 => {
-                let d = self.file.f16s()?;
+                let mut src = vec![half::f16::ZERO; rows.len()];
                 for (jj, j) in cols.clone().enumerate() {
-                    put(jj, &mut |dst| T::from_f16s(&d[item(j)], dst));
+                    if let Err(e) = self
+                        .file
+                        .read_data(at(j), bytemuck::cast_slice_mut(&mut src))
+                    {
+                        err = Some(e);
+                        break;
+                    }
+                    put(jj, &mut |dst| T::from_f16s(&src, dst));
                 }
             }
             Dtype::F32 => {
-                let d = self.file.f32s()?;
+                let mut src = vec![0f32; rows.len()];
                 for (jj, j) in cols.clone().enumerate() {
-                    put(jj, &mut |dst| T::from_f32s(&d[item(j)], dst));
+                    if let Err(e) = self
+                        .file
+                        .read_data(at(j), bytemuck::cast_slice_mut(&mut src))
+                    {
+                        err = Some(e);
+                        break;
+                    }
+                    put(jj, &mut |dst| T::from_f32s(&src, dst));
                 }
             }
             d => {
@@ -492,6 +510,9 @@ impl ItemMatrix<'_> {
                     format!("{d:?} is not a matrix type"),
                 ))
             }
+        }
+        if let Some(e) = err {
+            return Err(e);
         }
         if let Some(sc) = &self.scale {
             for (jj, j) in cols.enumerate() {
