@@ -97,6 +97,22 @@ impl FixedLobes {
         }
     }
 
+    /// The same lobes at every `step`-th pair from the first (a coarse pass's pairs, as
+    /// [`crate::sampling::Samples::every`] picks them), with their table coordinates when
+    /// they were found already.
+    pub fn every(&self, step: usize) -> FixedLobes {
+        let step = step.max(1);
+        let prepared = std::sync::OnceLock::new();
+        if let Some((cfg, p)) = self.prepared.get() {
+            let _ = prepared.set((cfg.clone(), p.iter().step_by(step).cloned().collect()));
+        }
+        FixedLobes {
+            pairs: self.pairs.iter().step_by(step).copied().collect(),
+            lobes: self.lobes.iter().step_by(step).cloned().collect(),
+            prepared,
+        }
+    }
+
     /// `fbar` of `mat` at every pair; equal to [`fbar`] on the geometry. The lobes' table
     /// coordinates are found on the first call and reused by every later table of the same
     /// settings.

@@ -735,7 +735,7 @@ pub struct Cx {
     pub rel_error: f64,
 }
 
-/// `C X`.
+/// `C X` (any product `a b`: sequential, so deterministic whatever the thread count).
 pub fn reconstruct(a_cols: MatRef<'_, f64>, x: MatRef<'_, f64>) -> Mat<f64> {
     let mut out = Mat::zeros(a_cols.nrows(), x.ncols());
     mm(out.as_mut(), Accum::Replace, a_cols, x);
@@ -882,6 +882,21 @@ fn cx_pivoted(a: MatRef<'_, f64>, tol: f64, max_cols: usize, norm_a: f64) -> Res
         x,
         rel_error,
     })
+}
+
+/// `(g + mu I)⁻¹` of a symmetric positive semi-definite `g` (`mu > 0`), through its SVD
+/// (sequential: deterministic whatever the thread count).
+pub fn ridge_inverse(g: MatRef<'_, f64>, mu: f64) -> Result<Mat<f64>> {
+    let (u, s, v) = thin_svd("ridge_inverse", g)?;
+    let vs = Mat::from_fn(v.nrows(), s.len(), |i, j| v[(i, j)] / (s[j] + mu));
+    let mut out = Mat::zeros(v.nrows(), u.nrows());
+    mm(
+        out.as_mut(),
+        Accum::Replace,
+        vs.as_ref(),
+        u.as_ref().transpose(),
+    );
+    Ok(out)
 }
 
 /// `X = C^+ A` with a rank-truncated pseudoinverse of `C = A[:, cols]`, and its error.

@@ -152,7 +152,7 @@ enum Cmd {
         /// Candidates returned.
         #[arg(long, short = 'k', default_value_t = 5)]
         k: usize,
-        /// Items re-ranked with their own library data [default: one per 40 library items, 64 to 1024]
+        /// Items re-ranked with their own library data [default: geometries one per 20 (256 to 4096), materials one per 2 (64 to 2048)]
         #[arg(long)]
         pool: Option<usize>,
         /// Geometry solver: rank the library by the representatives' light lobes only, not also
@@ -214,7 +214,7 @@ enum Cmd {
         seed: u64,
         #[arg(long, default_value_t = 1)]
         psi: usize,
-        /// Items re-ranked with their own library data [default: one per 40 library items, 64 to 1024]
+        /// Items re-ranked with their own library data [default: geometries one per 20 (256 to 4096), materials one per 2 (64 to 2048)]
         #[arg(long)]
         pool: Option<usize>,
         /// Geometry solver: rank the library by the representatives' light lobes only, not also
@@ -322,6 +322,13 @@ enum LibraryCmd {
         dir: PathBuf,
         #[arg(long)]
         keep_chunks: bool,
+        #[arg(long, short = 'q')]
+        quiet: bool,
+    },
+    /// Fit a finished library's geometry weights to its light lobes (geometry/x-lobes.bsa),
+    /// for libraries built before the merge did; rewrites the manifest.
+    Refit {
+        dir: PathBuf,
         #[arg(long, short = 'q')]
         quiet: bool,
     },
@@ -629,6 +636,9 @@ fn main() -> ExitCode {
                 keep_chunks,
                 quiet,
             } => biscale::library::commands::merge(&dir, quiet, keep_chunks).map(|t| print!("{t}")),
+            LibraryCmd::Refit { dir, quiet } => {
+                biscale::library::commands::refit(&dir, quiet).map(|t| print!("{t}"))
+            }
             LibraryCmd::Info { dir } => {
                 biscale::library::commands::info(&dir).map(|t| print!("{t}"))
             }

@@ -369,3 +369,84 @@ fn relative_texture_dirs_are_stored_absolute_so_a_sharded_merge_finds_them() {
     assert_eq!(data_files(&lib), data_files(&one));
     let _ = std::fs::remove_dir_all(root);
 }
+
+#[test]
+fn light_lobe_weights_fit_the_probes_at_least_as_well_as_the_binned_fit_and_refit_is_identical() {
+    use biscale::library::lobefit::Probes;
+    let (p, base) = tiny();
+    let d = fresh("lobefit");
+    build_all(&p, &base, &d, &QUIET, false, false).unwrap();
+    let lib = Library::open(&d).unwrap();
+    assert!(lib.has("geometry/x-lobes.bsa"));
+    let reps = lib.array("geometry/representatives.bsa").unwrap();
+    let reps = reps.u32s().unwrap();
+    let (x, xl) = (
+        lib.array("geometry/x.bsa").unwrap(),
+        lib.array("geometry/x-lobes.bsa").unwrap(),
+    );
+    let (x, xl) = (x.f32s().unwrap(), xl.f32s().unwrap());
+    assert_eq!(x.len(), xl.len());
+    assert!(xl.iter().all(|w| w.is_finite()));
+    // The probes of the fit: the library's representative materials.
+    let mats = lib.material_items().unwrap();
+    let mreps = lib.array("material/representatives.bsa").unwrap();
+    let tables = mreps
+        .u32s()
+        .unwrap()
+        .iter()
+        .map(|&m| {
+            let m = m as usize;
+            let mat = biscale::material::parse_material(&mats[m].spec).unwrap();
+            biscale::solve::material_prefiltered(&lib, &mat, Some(m)).unwrap()
+        })
+        .collect();
+    let layout = lib.gamma_layout();
+    let probes = Probes::with_tables(&layout, tables);
+    let lobes = lib.geometry_lobes().unwrap();
+    let rv: Vec<Vec<f64>> = reps
+        .iter()
+        .map(|&r| probes.values(&lobes.get(r as usize).unwrap()))
+        .collect();
+    let c = reps.len();
+    // Residual of the combination of the representatives' probe values with weights `w`
+    // against the geometry's own (unscaled: the fit scales each material's block, so compare
+    // the sum over blocks loosely, with a margin).
+    let residual = |own: &[f64], w: &[f32]| -> f64 {
+        let mut d = 0.0;
+        for (i, o) in own.iter().enumerate() {
+            let v: f64 = (0..c).map(|k| w[k] as f64 * rv[k][i]).sum();
+            d += (v - o) * (v - o);
+        }
+        let n: f64 = own.iter().map(|o| o * o).sum();
+        (d / n.max(1e-300)).sqrt()
+    };
+    let (mut better, mut n) = (0, 0);
+    for j in 0..lib.manifest.geometries {
+        let own = probes.values(&lobes.get(j).unwrap());
+        let (e0, e1) = (
+            residual(&own, &x[j * c..(j + 1) * c]),
+            residual(&own, &xl[j * c..(j + 1) * c]),
+        );
+        assert!(
+            e1 <= e0 * 1.05 + 1e-6,
+            "geometry {j}: refit {e1} vs binned fit {e0}"
+        );
+        if e0 > 1e-3 {
+            better += (e1 < 0.9 * e0) as usize;
+            n += 1;
+        }
+    }
+    assert!(
+        better * 2 >= n,
+        "the refit improved only {better} of the {n} geometries the binned fit misses"
+    );
+    // Refitting the finished library gives the same bytes.
+    let before = std::fs::read(d.join("geometry/x-lobes.bsa")).unwrap();
+    biscale::library::commands::refit(&d, true).unwrap();
+    assert_eq!(
+        std::fs::read(d.join("geometry/x-lobes.bsa")).unwrap(),
+        before
+    );
+    assert!(Library::open(&d).unwrap().has("geometry/x-lobes.bsa"));
+    let _ = std::fs::remove_dir_all(d);
+}

@@ -991,6 +991,7 @@ pub fn merge(
     stages.finish();
     times.compress =
         material.svd_seconds + material.cx_seconds + geometry.svd_seconds + geometry.cx_seconds;
+    times.lobe_fit = fit_lobe_weights(dir, &prof, &mats, progress, &mut files)?;
 
     write_items(dir, &geos, &mats, &mut files)?;
     times.peak_rss_mib = peak_rss_mib();
@@ -1016,6 +1017,70 @@ pub fn merge(
         let _ = std::fs::remove_dir_all(dir.join("chunks"));
     }
     Ok(manifest)
+}
+
+/// Fit the geometry CX weights to the light lobes ([`super::lobefit`]), probed with the
+/// material representatives' tables, and write `geometry/x-lobes.bsa` (listed in `files`; an
+/// earlier entry of it is replaced). Needs the geometry and material arrays of the merge
+/// (light lobes, representatives, `x.bsa`, prefiltered tables). Returns the seconds spent.
+pub fn fit_lobe_weights(
+    dir: &Path,
+    prof: &LibraryProfile,
+    mats: &[MaterialItem],
+    progress: &Progress,
+    files: &mut Vec<ArrayEntry>,
+) -> Result<f64> {
+    let t = Instant::now();
+    let open = |rel: &str| ArrayFile::open(&dir.join(rel), &Expect::default());
+    let lobes = open("geometry/lobes.bsa")?;
+    let reps = open("geometry/representatives.bsa")?;
+    let reps: Vec<usize> = reps.u32s()?.iter().map(|&k| k as usize).collect();
+    let x0 = open("geometry/x.bsa")?;
+    let tables_file = open("material/prefiltered.bsa")?;
+    let mreps = open("material/representatives.bsa")?;
+    let pcfg = prefilter_config(prof);
+    let tlen = table_len(prof);
+    let tables = mreps
+        .u32s()?
+        .iter()
+        .map(|&m| {
+            let m = m as usize;
+            let item = mats.get(m).ok_or_else(|| {
+                Error::new(
+                    mreps.path.display().to_string(),
+                    format!("representative {m} is not a material of the library"),
+                )
+            })?;
+            let mut data = vec![0f32; tlen];
+            tables_file.read_data(m * tlen * 4, bytemuck::cast_slice_mut(&mut data))?;
+            Prefiltered::from_table(&parse_material(&item.spec)?, &pcfg, data)
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let n = lobes.header.shape.first().copied().unwrap_or(0);
+    let bar = progress.bar(
+        n as u64,
+        "merge: geometry weights fitted to the light lobes",
+    );
+    let x = super::lobefit::fit(
+        &lobes,
+        &gamma_layout(prof),
+        prof.geometry.lobe_clusters,
+        tables,
+        &reps,
+        x0.f32s()?,
+        &|n| bar.inc(n as u64),
+    )?;
+    bar.finish();
+    files.retain(|f| f.path != "geometry/x-lobes.bsa");
+    save_f32(
+        dir,
+        "geometry/x-lobes.bsa",
+        "geometry-x-lobes",
+        &[n, reps.len()],
+        &x,
+        files,
+    )?;
+    Ok(t.elapsed().as_secs_f64())
 }
 
 fn write_items(

@@ -95,6 +95,23 @@ pub fn merge(dir: &Path, quiet: bool, keep_chunks: bool) -> Result<String> {
     Ok(summary(dir, &m))
 }
 
+/// Fit (again) the geometry weights of a finished library to its light lobes
+/// (`geometry/x-lobes.bsa`, [`super::lobefit`]): for libraries built before the merge fitted
+/// them. Rewrites the manifest.
+pub fn refit(dir: &Path, quiet: bool) -> Result<String> {
+    let lib = Library::open(dir)?;
+    let mut m = lib.manifest.clone();
+    m.build.lobe_fit = super::build::fit_lobe_weights(
+        dir,
+        &lib.profile,
+        &lib.material_items()?,
+        &Progress { quiet },
+        &mut m.files,
+    )?;
+    m.write(dir)?;
+    Ok(summary(dir, &m))
+}
+
 /// Describe a library.
 pub fn info(dir: &Path) -> Result<String> {
     let lib = Library::open(dir)?;
@@ -141,8 +158,8 @@ fn summary(dir: &Path, m: &Manifest) -> String {
     }
     s.push_str(&format!(
         "colours: {} per distinct material ({} effective materials)\n\
-         build: geometries {:.1} s, materials {:.1} s, join {:.1} s, colours {:.1} s, compression {:.1} s; \
-         total {:.1} s on {} threads; peak memory {:.0} MiB\n",
+         build: geometries {:.1} s, materials {:.1} s, join {:.1} s, colours {:.1} s, compression {:.1} s, \
+         light-lobe weights {:.1} s; total {:.1} s on {} threads; peak memory {:.0} MiB\n",
         m.colours_per_material,
         m.materials * m.colours_per_material,
         b.geometry_seconds,
@@ -150,6 +167,7 @@ fn summary(dir: &Path, m: &Manifest) -> String {
         b.assemble,
         b.colours,
         b.compress,
+        b.lobe_fit,
         b.total_seconds,
         b.threads,
         b.peak_rss_mib

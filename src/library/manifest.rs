@@ -63,6 +63,9 @@ pub struct StageTimes {
     pub assemble: f64,
     pub colours: f64,
     pub compress: f64,
+    /// Fitting the geometry weights to the light lobes (`geometry/x-lobes.bsa`).
+    #[serde(default)]
+    pub lobe_fit: f64,
     pub total_seconds: f64,
     pub threads: usize,
     pub peak_rss_mib: f64,

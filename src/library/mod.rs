@@ -13,6 +13,8 @@
 //! geometry/singular.bsa         f32: singular values
 //! geometry/representatives.bsa  u32: CX column indices c(k)
 //! geometry/x.bsa                f32 [geometries, c]: CX weights X (Eq. 11)
+//! geometry/x-lobes.bsa          f32 [geometries, c]: the same refitted to the light lobes (lobefit)
+//! geometry/lobes.bsa            f32 [geometries, record]: light lobes (crate::lightlobes)
 //! material/...                  the same for materials, with prefiltered.bsa (f32 [materials,
 //!                               table]) instead of gamma.bsa, and colour.bsa / colour-shifts.bsa
 //! chunks/                       build work, removed after the merge
@@ -25,6 +27,7 @@ pub mod bench;
 pub mod build;
 pub mod commands;
 pub mod items;
+pub mod lobefit;
 pub mod manifest;
 pub mod profile;
 pub mod progress;
@@ -318,6 +321,23 @@ impl Library {
 
     pub fn gamma_layout(&self) -> GammaLayout {
         build::gamma_layout(&self.profile)
+    }
+
+    /// The geometry CX weights to combine with the representatives' light-lobe values:
+    /// `geometry/x-lobes.bsa` ([`lobefit`]: fitted to the light lobes) when the library has it,
+    /// else `geometry/x.bsa` (fitted to the binned columns).
+    pub fn geometry_lobe_weights(&self) -> Result<Arc<ArrayFile>> {
+        if self.has("geometry/x-lobes.bsa") {
+            self.array("geometry/x-lobes.bsa")
+        } else {
+            self.array("geometry/x.bsa")
+        }
+    }
+
+    /// Whether the manifest lists the file `rel` (arrays added by later versions, such as
+    /// `geometry/x-lobes.bsa`, are missing from older libraries).
+    pub fn has(&self, rel: &str) -> bool {
+        self.manifest.files.iter().any(|f| f.path == rel)
     }
 
     /// Every geometry's light lobes (`geometry/lobes.bsa`, mapped on first use).

@@ -8,9 +8,11 @@
 //! the binned BVNDF the CX weights were fitted to, so any accurate evaluation of the
 //! representatives may be combined), compared with each rotated target's values there. Stage 1
 //! also ranks by the representatives' binned columns with the material's response (the linear
-//! model the weights were fitted to), and the pool of `pool` (geometry, rotation) pairs takes the
-//! best of both rankings in turn: where an item's large weights amplify the difference between
-//! light lobes and binned columns, the first ranking misses it and the second does not. The
+//! model the weights were fitted to) and, when the library has them, by the representatives'
+//! light-lobe values with the weights refitted to them ([`crate::library::lobefit`]); the pool
+//! of `pool` (geometry, rotation) pairs takes the best of the rankings in turn: where an item's
+//! large weights amplify the difference between light lobes and binned columns, one ranking
+//! misses it and another does not. The
 //! pool's pairs are re-ranked with their own light lobes (a pool over [`COARSE_KEEP`] narrowed
 //! first by coarse passes, each keeping its best quarter at a quarter of the next pass's
 //! samples, [`coarse_step`]), and the best `k` geometries — each once, at its best rotation —
@@ -156,7 +158,16 @@ pub fn solve_with(
     let layout = lib.gamma_layout();
     let reps = lib.array("geometry/representatives.bsa")?;
     let xs = lib.array("geometry/x.bsa")?;
+    // The weights for the representatives' light-lobe values (refitted to them when the
+    // library has them, `library::lobefit`); `xs` stays with their binned columns.
+    // The weights refitted to the light lobes (`library::lobefit`), when the library has them:
+    // the third ranking of stage 1.
+    let xl = lib
+        .has("geometry/x-lobes.bsa")
+        .then(|| lib.array("geometry/x-lobes.bsa"));
+    let xl = xl.transpose()?;
     let (reps, xs) = (reps.u32s()?, xs.f32s()?);
+    let xl = xl.as_ref().map(|f| f.f32s()).transpose()?;
     // The item data of stages 1 and 2: light lobes with the material's prefiltered table, or
     // (`rerank_fast = false`, for comparison) binned columns with the material's response.
     let data = if opt.rerank_fast {
@@ -230,34 +241,37 @@ pub fn solve_with(
             .flat_map(|(ri, e)| e.into_iter().enumerate().map(move |(j, e)| (e, j, ri)))
             .collect();
     let errs: Vec<f64> = scored.iter().map(|s| s.0).collect();
-    let by_lobes = smallest(&errs, pool_size);
+    let mut rankings = vec![smallest(&errs, pool_size)];
     // The second ranking: the representatives' binned columns with the material's response,
     // the linear model the CX weights were fitted to (same (rotation, item) layout).
-    let pool = match (&data, opt.binned_search) {
-        (ItemData::Lobes { pf, .. }, true) => {
-            let gamma = lib.array("geometry/gamma.bsa")?;
-            let (g16, rows) = (gamma.f16s()?, layout.rows());
-            let resp = Response::with_table(&layout, material, pf, &shared.pairs);
-            let a: Vec<Vec<f64>> = reps
-                .par_iter()
-                .map(|&k| {
-                    let k = k as usize;
-                    g16.get(k * rows..(k + 1) * rows)
-                        .map(|c| resp.apply(c))
-                        .ok_or_else(|| {
-                            crate::error::Error::new(
-                                gamma.path.display().to_string(),
-                                format!("no column for representative {k}"),
-                            )
-                        })
-                })
-                .collect::<Result<_>>()?;
-            let binned: Vec<f64> =
-                search_errors_multi(shared, &targets, &a, xs, items.len(), rescore).concat();
-            interleave(&by_lobes, &smallest(&binned, pool_size), pool_size)
-        }
-        _ => by_lobes,
-    };
+    if let (ItemData::Lobes { pf, .. }, true) = (&data, opt.binned_search) {
+        let gamma = lib.array("geometry/gamma.bsa")?;
+        let (g16, rows) = (gamma.f16s()?, layout.rows());
+        let resp = Response::with_table(&layout, material, pf, &shared.pairs);
+        let b: Vec<Vec<f64>> = reps
+            .par_iter()
+            .map(|&k| {
+                let k = k as usize;
+                g16.get(k * rows..(k + 1) * rows)
+                    .map(|c| resp.apply(c))
+                    .ok_or_else(|| {
+                        crate::error::Error::new(
+                            gamma.path.display().to_string(),
+                            format!("no column for representative {k}"),
+                        )
+                    })
+            })
+            .collect::<Result<_>>()?;
+        let binned = search_errors_multi(shared, &targets, &b, xs, items.len(), rescore).concat();
+        rankings.push(smallest(&binned, pool_size));
+    }
+    // The third: the representatives' light-lobe values with the weights refitted to them.
+    if let (ItemData::Lobes { .. }, Some(xl)) = (&data, xl) {
+        let refit = search_errors_multi(shared, &targets, &a, xl, items.len(), rescore).concat();
+        rankings.push(smallest(&refit, pool_size));
+    }
+    let refs: Vec<&[usize]> = rankings.iter().map(|r| r.as_slice()).collect();
+    let pool = interleave(&refs, pool_size);
     stats.items_searched = items.len() * rots.len();
     stats.representatives = reps.len();
     stats.search_seconds = t0.elapsed().as_secs_f64();

@@ -35,21 +35,23 @@ use serde::Serialize;
 
 pub use look::Look;
 
-/// The automatic pool of the material solver for a library of `items`: one per 40 items, from
-/// 64 to 1024. 64 was tuned on
-/// the 800-geometry `default` library; on the 10,277-geometry `paper16` (20 cases) a pool of 256 took the
-/// geometry solver from 85 % to 95 % within 7 % (its exhaustive scan: 100 %; `docs/solvers.md`).
+/// The automatic pool of the material solver for a library of `items` materials: one per 2,
+/// from 64 to 2048. The pool is narrowed by coarse passes ([`geometry::narrow`]), so it costs
+/// little: on the 1,040-material `paper4` library (50 cases, the paper's protocol) pools of 64,
+/// 256, 512 and 1024 put 94, 100, 100 and 100 % within 7 % (exact recovery 86, 96, 98 and
+/// 100 %) in 0.016–0.029 s (`docs/solvers.md`).
 pub fn auto_pool(items: usize) -> usize {
-    (items / 40).clamp(64, 1024)
+    (items / 2).clamp(64, 2048)
 }
 
-/// The automatic pool of the geometry solver for a library of `items` geometries: one per 5
-/// items, from 64 to 4096. Stage 2 narrows it by coarse passes of about equal cost
-/// ([`geometry::coarse_step`]), so a pool four times larger costs one pass more. On the
-/// 10,277-geometry `paper16` library (50 cases, the paper's protocol) pools of 256, 1024 and
-/// 2048 put 92 %, 98 % and 100 % of the cases within 7 % (`docs/solvers.md`).
+/// The automatic pool of the geometry solver for a library of `items` geometries: one per 20
+/// items, from 256 to 4096. Stage 2 narrows it by coarse passes of about equal cost
+/// ([`geometry::coarse_step`]), so a pool four times larger costs one pass more. With stage 1's
+/// third ranking (weights refitted to the light lobes), 50 cases of the paper's protocol were
+/// all within 7 % from a pool of 512 on the 10,277-geometry `paper16` library and of 2048 on
+/// the 41,108-geometry `paper4` one (98 % from half those pools; `docs/solvers.md`).
 pub fn auto_geometry_pool(items: usize) -> usize {
-    (items / 5).clamp(64, 4096)
+    (items / 20).clamp(256, 4096)
 }
 
 impl SolveOptions {
@@ -280,27 +282,23 @@ pub fn smallest(errors: &[f64], n: usize) -> Vec<usize> {
     idx
 }
 
-/// The first `n` distinct entries of the rankings `a` and `b` taken in turn (`a[0]`, `b[0]`,
-/// `a[1]`, …): the union of two rankings, each contributing its best, when neither can be
-/// trusted alone.
-pub fn interleave(a: &[usize], b: &[usize], n: usize) -> Vec<usize> {
+/// The first `n` distinct entries of `rankings` taken in turn (`r0[0]`, `r1[0]`, …, `r0[1]`,
+/// …; a ranking that runs out drops out): their union, each contributing its best, when none
+/// can be trusted alone.
+pub fn interleave(rankings: &[&[usize]], n: usize) -> Vec<usize> {
     let mut seen = std::collections::HashSet::with_capacity(2 * n);
     let mut out = Vec::with_capacity(n);
-    let mut it = a.iter().zip(b).flat_map(|(x, y)| [*x, *y]).chain(
-        // the longer ranking's tail, when one is shorter
-        a.iter()
-            .skip(b.len())
-            .chain(b.iter().skip(a.len()))
-            .copied(),
-    );
-    while out.len() < n {
-        match it.next() {
-            Some(i) => {
-                if seen.insert(i) {
-                    out.push(i);
+    let longest = rankings.iter().map(|r| r.len()).max().unwrap_or(0);
+    for i in 0..longest {
+        for r in rankings {
+            if out.len() == n {
+                return out;
+            }
+            if let Some(&x) = r.get(i) {
+                if seen.insert(x) {
+                    out.push(x);
                 }
             }
-            None => break,
         }
     }
     out
@@ -512,16 +510,17 @@ mod tests {
     #[test]
     fn the_automatic_pool_grows_with_the_library_and_an_asked_pool_wins() {
         assert_eq!(auto_pool(29), 64);
-        assert_eq!(auto_pool(800), 64);
-        assert_eq!(auto_pool(10_277), 256);
-        assert_eq!(auto_pool(164_431), 1024);
-        assert_eq!(auto_geometry_pool(200), 64);
-        assert_eq!(auto_geometry_pool(800), 160);
-        assert_eq!(auto_geometry_pool(10_277), 2055);
+        assert_eq!(auto_pool(192), 96);
+        assert_eq!(auto_pool(1_040), 520);
+        assert_eq!(auto_pool(4_168), 2048);
+        assert_eq!(auto_geometry_pool(200), 256);
+        assert_eq!(auto_geometry_pool(800), 256);
+        assert_eq!(auto_geometry_pool(10_277), 513);
+        assert_eq!(auto_geometry_pool(41_108), 2055);
         assert_eq!(auto_geometry_pool(164_431), 4096);
         let auto = SolveOptions::default();
-        assert_eq!(auto.pool_for(10_277), 256);
-        assert_eq!(auto.geometry_pool_for(10_277), 2055);
+        assert_eq!(auto.pool_for(1_040), 520);
+        assert_eq!(auto.geometry_pool_for(10_277), 513);
         let asked = SolveOptions {
             pool: 16,
             k: 20,
@@ -570,13 +569,17 @@ mod tests {
     #[test]
     fn interleave_takes_both_rankings_in_turn_without_repeats() {
         assert_eq!(
-            interleave(&[3, 1, 4, 5], &[1, 9, 2], 5),
+            interleave(&[&[3, 1, 4, 5], &[1, 9, 2]], 5),
             vec![3, 1, 9, 4, 2]
         );
         // A shorter ranking runs out; the longer one fills the rest.
-        assert_eq!(interleave(&[7], &[8, 9, 10], 4), vec![7, 8, 9, 10]);
-        assert_eq!(interleave(&[1, 2], &[2, 1], 10), vec![1, 2]);
-        assert!(interleave(&[], &[], 3).is_empty());
+        assert_eq!(interleave(&[&[7], &[8, 9, 10]], 4), vec![7, 8, 9, 10]);
+        assert_eq!(
+            interleave(&[&[1, 2], &[3], &[4, 5]], 5),
+            vec![1, 3, 4, 2, 5]
+        );
+        assert_eq!(interleave(&[&[1, 2], &[2, 1]], 10), vec![1, 2]);
+        assert!(interleave(&[&[], &[]], 3).is_empty());
     }
 
     /// A random compressed search drawn with `seed`: `np` samples with weights, `targets`
