@@ -173,6 +173,10 @@ enum Cmd {
         /// starts only.
         #[arg(long, default_value_t = 1024)]
         joint_pool: usize,
+        /// General solver: stop once a combination is within this relative error (0.01 = 1 %;
+        /// 0: run every start and iteration).
+        #[arg(long, default_value_t = biscale::solve::general::STOP_BELOW)]
+        stop_below: f64,
         /// Weight of the colour term (Eq. 13), 0..1.
         #[arg(long, default_value_t = 0.0)]
         beta: f64,
@@ -234,6 +238,10 @@ enum Cmd {
         /// starts only.
         #[arg(long, default_value_t = 1024)]
         joint_pool: usize,
+        /// General solver: stop once a combination is within this relative error (0.01 = 1 %;
+        /// 0: run every start and iteration).
+        #[arg(long, default_value_t = biscale::solve::general::STOP_BELOW)]
+        stop_below: f64,
         /// Solvers to run, comma-separated (each with its exhaustive scan) [default: all]
         #[arg(long, value_delimiter = ',')]
         solvers: Vec<SolverArg>,
@@ -491,6 +499,7 @@ fn main() -> ExitCode {
             iterations,
             beam,
             joint_pool,
+            stop_below,
             beta,
             final_eval,
             veds,
@@ -542,6 +551,7 @@ fn main() -> ExitCode {
                         start_material: None,
                         beam: beam.max(1),
                         joint_pool,
+                        stop_below: stop_below.max(0.0),
                     },
                     veds: veds.map(|n| (n.max(1), bound)),
                     library,
@@ -565,6 +575,7 @@ fn main() -> ExitCode {
             starts,
             beam,
             joint_pool,
+            stop_below,
             solvers,
             no_exhaustive,
             sweep,
@@ -593,6 +604,7 @@ fn main() -> ExitCode {
                                 seed,
                                 beam: beam.max(1),
                                 joint_pool,
+                                stop_below: stop_below.max(0.0),
                                 ..Default::default()
                             },
                             sweep: sweep || plot.is_some(),

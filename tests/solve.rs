@@ -428,6 +428,49 @@ fn general_solver_answers_are_distinct_combinations() {
     }
 }
 
+/// The stopping rule: a combination within `stop_below` after the joint search ends the
+/// search there (no start is run); 0 runs every start.
+#[test]
+fn general_solver_stops_when_a_combination_is_within_stop_below() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let look = combo(&lib, 10, 2);
+    let (opt, g) = small_general(3, 16, 1, 3);
+    let run = |stop_below: f64| {
+        let g = biscale::solve::general::GeneralOptions {
+            stop_below,
+            ..g.clone()
+        };
+        biscale::solve::general::explore(&lib, &look, &opt, &g).unwrap()
+    };
+    let (all, full) = run(0.0);
+    assert!(
+        !full.notes.iter().any(|n| n.contains("stopped")),
+        "{:?}",
+        full.notes
+    );
+    // Every combination is within 100 %: the joint search's pairs are the answer.
+    let (early, st) = run(1.0);
+    assert!(
+        st.notes
+            .iter()
+            .any(|n| n.contains("stopped after the joint search")),
+        "{:?}",
+        st.notes
+    );
+    assert!(!early.is_empty() && early.len() <= all.len());
+    assert!(st.items_searched < full.items_searched);
+    // The stop is only taken when the bound is met: a bound below the best found runs on.
+    let best = all[0].error;
+    if best > 1e-9 {
+        let (_, st) = run(best * 0.5);
+        assert!(
+            !st.notes.iter().any(|n| n.contains("stopped")),
+            "{:?}",
+            st.notes
+        );
+    }
+}
+
 /// Visually equivalent details: every kept combination is within the bound, no two are the
 /// same pair, and the first pass keeps only combinations that differ in both parts.
 #[test]

@@ -31,6 +31,10 @@ pub struct GeneralOptions {
     /// candidates and their distinct materials the starts. 0 = no joint search (flat-patch and
     /// random starts).
     pub joint_pool: usize,
+    /// Stopping rule: once a combination is within this relative error (library data), no
+    /// further start or iteration is run (0: run them all). The visually equivalent details
+    /// run them all.
+    pub stop_below: f64,
 }
 
 impl Default for GeneralOptions {
@@ -42,9 +46,14 @@ impl Default for GeneralOptions {
             start_material: None,
             beam: 3,
             joint_pool: 1024,
+            stop_below: STOP_BELOW,
         }
     }
 }
+
+/// The default stopping rule: a combination within 1 % of the look ends the search (the paper
+/// finds differences below 7 % hard to notice, Fig. 12).
+pub const STOP_BELOW: f64 = 0.01;
 
 /// Every combination the alternation visited, best first (library-data errors), with the
 /// number of solver calls.
@@ -118,7 +127,16 @@ pub fn explore(
         // them all).
         seen.extend(super::joint::candidates(lib, look, &pairs, &inner)?);
     }
-    if start_mats.len() < starts {
+    let done =
+        |seen: &[Candidate]| g.stop_below > 0.0 && seen.iter().any(|c| c.error <= g.stop_below);
+    let stopped = done(&seen);
+    if stopped {
+        stats.notes.push(format!(
+            "stopped after the joint search: a combination is within {:.1} % (--stop-below)",
+            100.0 * g.stop_below
+        ));
+        start_mats.clear();
+    } else if start_mats.len() < starts {
         let (best, st) = super::material::closest_on_flat_patch(lib, look, 1, &inner)?;
         accumulate(&mut stats, &st);
         if let Some(&m) = best.first() {
@@ -127,7 +145,7 @@ pub fn explore(
             }
         }
     }
-    while start_mats.len() < starts {
+    while !stopped && start_mats.len() < starts {
         start_mats.push(rng.below(mats.len() as u64) as usize);
     }
     // Solves are deterministic, so one already run (another start reaching the same material,
@@ -135,6 +153,13 @@ pub fn explore(
     let mut geometry_solves: HashMap<usize, Vec<Candidate>> = HashMap::new();
     let mut material_solves: HashMap<(usize, u64), Vec<Candidate>> = HashMap::new();
     for (s, &m0) in start_mats.iter().enumerate() {
+        if done(&seen) {
+            stats.notes.push(format!(
+                "stopped before start {s}: a combination is within {:.1} % (--stop-below)",
+                100.0 * g.stop_below
+            ));
+            break;
+        }
         let mut m = m0;
         let mut last: Option<(usize, i64, usize)> = None;
         for _ in 0..g.max_iterations.max(1) {

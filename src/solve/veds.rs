@@ -43,7 +43,12 @@ pub fn solve(
     bound: f64,
     max_similarity: f64,
 ) -> Result<SolveResult> {
-    let (pool, mut stats) = explore(lib, look, opt, g)?;
+    // Every start and iteration: the details are drawn from all the combinations visited.
+    let g = GeneralOptions {
+        stop_below: 0.0,
+        ..g.clone()
+    };
+    let (pool, mut stats) = explore(lib, look, opt, &g)?;
     let gc = lib.array("geometry/coords.bsa")?;
     let mc = lib.array("material/coords.bsa")?;
     let (gr, mr) = (gc.header.shape[1], mc.header.shape[1]);
