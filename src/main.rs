@@ -156,7 +156,7 @@ enum Cmd {
         #[arg(long)]
         pool: Option<usize>,
         /// Geometry solver: rank the library by the representatives' light lobes only, not also
-        /// by their binned columns (the pool then comes from one ranking).
+        /// by their binned columns (the pool then comes from the light-lobe rankings: X and, when the library has them, the weights refitted to the light lobes).
         #[arg(long)]
         lobes_search_only: bool,
         /// General solver: starts and iterations per start.
@@ -222,7 +222,7 @@ enum Cmd {
         #[arg(long)]
         pool: Option<usize>,
         /// Geometry solver: rank the library by the representatives' light lobes only, not also
-        /// by their binned columns (the pool then comes from one ranking).
+        /// by their binned columns (the pool then comes from the light-lobe rankings: X and, when the library has them, the weights refitted to the light lobes).
         #[arg(long)]
         lobes_search_only: bool,
         #[arg(long, default_value_t = 3)]

@@ -158,8 +158,6 @@ pub fn solve_with(
     let layout = lib.gamma_layout();
     let reps = lib.array("geometry/representatives.bsa")?;
     let xs = lib.array("geometry/x.bsa")?;
-    // The weights for the representatives' light-lobe values (refitted to them when the
-    // library has them, `library::lobefit`); `xs` stays with their binned columns.
     // The weights refitted to the light lobes (`library::lobefit`), when the library has them:
     // the third ranking of stage 1.
     let xl = lib

@@ -123,12 +123,11 @@ pub fn solve(
     stats.search_seconds = t0.elapsed().as_secs_f64();
     // Stage 2: each pooled material's own table.
     let t1 = Instant::now();
-    // Since the material CX weights are fitted per material (tables scaled to unit norm), the
-    // search ranks well enough that re-ranking `pool` materials finds what re-ranking four
-    // times as many did (`biscale validate`, material rows: the same 90 % in 0.042 s, not 0.090 s).
+    // The compressed search ranks sharp materials on rough surfaces poorly (14 representatives
+    // on `paper4`: originals past the 64th), so the pool is large (`auto_pool`) and narrowed
+    // first by the geometry solver's coarse passes (each ranks by the score at every `step`-th
+    // sample and keeps its best quarter), which makes it cheap.
     let pool = smallest(&scores, opt.pool_for(items.len()));
-    // A pool larger than COARSE_KEEP is narrowed first by the geometry solver's coarse passes
-    // (each ranks by the score at every `step`-th sample and keeps its best quarter).
     let pool = narrow(
         pool,
         COARSE_KEEP.max(opt.k),
