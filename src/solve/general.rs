@@ -70,17 +70,23 @@ pub fn explore(
             "the library has no materials",
         ));
     }
-    // The alternation's geometry solves take half the geometry solver's automatic pool
-    // unless a pool is asked for: the joint search has ranked every pair already. On
-    // `paper16` (50 cases, the paper's protocol, 5 starts) the material solver's pool (256)
-    // gave 92 % within 7 %, half the geometry pool (1027) 94 % and the whole one (2055) 94 %
-    // in a quarter more time (docs/solvers.md).
+    // The first start's geometry solves (from the joint search's best material, the likeliest
+    // to be right) are the geometry solver's own, with its automatic pool; the later starts'
+    // take half of it, unless a pool is asked for: the joint search has ranked every pair already.
+    // On `paper16` (50 cases, the paper's protocol, 5 starts) the material solver's pool (256)
+    // for every start gave 92 % within 7 %, half the geometry pool (1027) 94 % and the whole
+    // one (2055) 94 % in a quarter more time; on `paper4` the whole pool for the first start
+    // only gave 92 -> 94 % in 1.5 % more time (docs/solvers.md).
     let inner = SolveOptions {
         final_eval: Final::Library,
         k: opt.k.max(3),
         ..opt.clone()
     };
-    let inner_geometry = SolveOptions {
+    let first_geometry = SolveOptions {
+        pool: opt.pool_or(super::auto_geometry_pool(lib.manifest.geometries)),
+        ..inner.clone()
+    };
+    let later_geometry = SolveOptions {
         pool: opt.pool_or((super::auto_geometry_pool(lib.manifest.geometries) / 2).max(64)),
         ..inner.clone()
     };
@@ -171,7 +177,11 @@ pub fn explore(
                     &mat,
                     &mats[m].spec,
                     Some(m),
-                    &inner_geometry,
+                    if s == 0 {
+                        &first_geometry
+                    } else {
+                        &later_geometry
+                    },
                     rep_pairs.as_ref(),
                 )?;
                 accumulate(&mut stats, &gr.stats);
