@@ -131,6 +131,8 @@ struct Tally {
     within1: usize,
     times: Vec<f64>,
     errors: Vec<f64>,
+    /// Per case, the solver's own stage times (search, re-rank), when it reports them.
+    stages: Vec<(f64, f64)>,
 }
 
 impl Tally {
@@ -324,14 +326,15 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
         // Run one solver (timed), verify its answer (untimed), count it, and name a miss.
         let run = |tally: &mut Tally,
                    name: &str,
-                   solve: &dyn Fn() -> Result<Option<Candidate>>,
+                   solve: &dyn Fn() -> Result<(Option<Candidate>, Option<(f64, f64)>)>,
                    recovered: &dyn Fn(&Candidate) -> bool|
          -> Result<()> {
             let t = Instant::now();
-            let best = solve()?;
+            let (best, stages) = solve()?;
             let secs = t.elapsed().as_secs_f64();
             let err = verified(lib, &look, best.as_ref(), (g, m), &opt, job.library_targets)?;
             tally.add(err, best.as_ref().is_some_and(recovered), secs);
+            tally.stages.extend(stages);
             if err > crate::solve::job::MATCH_BOUND && !job.quiet {
                 eprintln!(
                     "validate: case {}: {name} missed 7 %: {} (geometry {g} '{}', material {m} '{}'), answer {}",
@@ -347,7 +350,11 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
             }
             Ok(())
         };
-        let first = |r: crate::solve::SolveResult| r.candidates.into_iter().next();
+        // The best candidate, and the solver's stage times.
+        let first = |r: crate::solve::SolveResult| {
+            let stages = (r.stats.search_seconds, r.stats.rerank_seconds);
+            (r.candidates.into_iter().next(), Some(stages))
+        };
         let is_g = |b: &Candidate| b.geometry == Some(g);
         let is_m = |b: &Candidate| b.material == Some(m);
         if job.runs(Solver::Geometry) {
@@ -364,7 +371,7 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
                 run(
                     &mut eg,
                     "geometry exhaustive scan",
-                    &|| exhaustive_geometry(lib, &look, m, &opt).map(Some),
+                    &|| exhaustive_geometry(lib, &look, m, &opt).map(|c| (Some(c), None)),
                     &is_g,
                 )?;
             }
@@ -384,7 +391,7 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
                 run(
                     &mut em,
                     "material exhaustive scan",
-                    &|| exhaustive_material(lib, &look, g, &opt).map(Some),
+                    &|| exhaustive_material(lib, &look, g, &opt).map(|c| (Some(c), None)),
                     &is_m,
                 )?;
             }
@@ -458,6 +465,27 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
     }
     if job.runs(Solver::General) {
         out += &row("general (both unknown)", &tgen);
+    }
+    let stages: Vec<String> = [("geometry", &tg), ("material", &tm), ("general", &tgen)]
+        .iter()
+        .filter(|(_, t)| !t.stages.is_empty())
+        .map(|(name, t)| {
+            let (s, r): (Vec<f64>, Vec<f64>) = t.stages.iter().copied().unzip();
+            format!(
+                "{name} {:.3} / {:.3} s",
+                Tally::q(&s, 0.5),
+                Tally::q(&r, 0.5)
+            )
+        })
+        .collect();
+    if !stages.is_empty() {
+        out += &format!(
+            "\nMedian stage times inside the times above, search (stage 1: the compressed \
+             libraries through their representatives) / re-rank (stage 2: the pool with each \
+             item's own data, coarse passes included): {} (the general solver's summed over its \
+             joint search and its solves).\n",
+            stages.join(", ")
+        );
     }
     out += &format!(
         "\nDrawing each target's samples (7 lights × {} views, gradient importance; not in the times above): median {:.3} s.\n",

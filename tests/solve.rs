@@ -195,6 +195,15 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
             && !t.contains("general (both unknown)"),
         "{t}"
     );
+    // The stage times are the solver's own (the exhaustive scan has no stages).
+    let stages = t
+        .lines()
+        .find(|l| l.starts_with("Median stage times"))
+        .unwrap_or_default();
+    assert!(
+        stages.contains("included): material ") && !stages.contains("geometry 0"),
+        "{t}"
+    );
     let fast = biscale::validate::ValidateJob {
         exhaustive: false,
         ..only.clone()
