@@ -35,9 +35,18 @@ def load_profile(ref, base=ROOT / "profiles/fabrication"):
     return {**load_profile(prof["extends"], p.parent), **prof} if "extends" in prof else prof
 
 
-def tool_diameter(profile):
-    """(tool name, ball diameter mm) of a profile; diameter None for printers and flat-end tools."""
-    prof = load_profile(profile)
+def tool_diameter(summary):
+    """(tool name, ball diameter mm) of the design's profile; diameter None for printers and
+    flat-end tools. From the resolved profile that summary.json records (any profile, shipped or
+    the user's own, with the catalogue it was resolved against), else (older outputs) by looking
+    the profile name up among the shipped profiles."""
+    fab = summary.get("fabrication_profile")
+    if fab is not None:
+        tool = fab.get("tool")
+        if not tool:
+            return None, None
+        return tool["name"], (tool["diameter_mm"] if tool["kind"] == "ball" else None)
+    prof = load_profile(summary["profile"])
     if "tool" not in prof:
         return None, None
     tool = tomllib.loads((ROOT / "constraints/tools.toml").read_text())[prof["tool"]]
@@ -216,8 +225,14 @@ def main():
         sys.exit(__doc__)
     frac = float(next((a.split("=")[1] for a in sys.argv if a.startswith("--spacing-frac=")), 0.125))
     out = Path(args[0])
+    if not (out / "summary.json").is_file():
+        sys.exit(f"verify-export: {out}: no summary.json here; expected an output directory of "
+                 f"`biscale design` (outputs/<scene name>)")
     summary = json.loads((out / "summary.json").read_text())
-    tool, diameter = tool_diameter(summary["profile"])
+    if not any(d.get("stl") for d in summary["details"]):
+        sys.exit(f"verify-export: {out}: the design exported no STL (details = 0, or no candidate "
+                 f"was feasible: see its report.md); nothing to check")
+    tool, diameter = tool_diameter(summary)
     failures, rows = 0, []
     print(f"{out}: profile {summary['profile']}, tool {tool} ({diameter} mm ball), "
           f"drop-cutter: {'numpy' if ('--numpy' in sys.argv or ocl is None) else 'opencamlib ' + ocl.version()}")

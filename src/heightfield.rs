@@ -78,9 +78,15 @@ pub fn surface_points(facets: &[Facet], s: usize) -> Vec<SurfacePoint> {
         .collect()
 }
 
+/// The largest height (in cells, grid units) a heightfield may have. A march looks out from a
+/// height tolerance above its point that grows with the relief (1e-10 of it, for rounding); on a
+/// surface `1e9` cells tall that is 0.2 cells, already about 1 % of what a view ray at 40° sees
+/// of a wall near a crest, and rays at 89.9° start `6e11` cells from where they hit.
+pub const MAX_HEIGHT: f64 = 1e9;
+
 impl Heightfield {
     /// A heightfield from row-major samples `z[y * w + x]` in grid units. Rejects empty,
-    /// mis-sized or non-finite data with a message naming `name`.
+    /// mis-sized or non-finite data, and heights beyond [`MAX_HEIGHT`], with a message naming `name`.
     pub fn new(
         w: usize,
         h: usize,
@@ -116,6 +122,21 @@ impl Heightfield {
             return Err(Error::new(
                 &name,
                 format!("cell size must be a positive number of mm, got {cell_mm}"),
+            ));
+        }
+        if let Some(i) = z.iter().position(|v| v.abs() > MAX_HEIGHT) {
+            return Err(Error::new(
+                &name,
+                format!(
+                    "height at row {}, column {} is {:e} cells ({:e} mm): heights must lie within \
+                     ±{MAX_HEIGHT:e} cells (the side of one sample), beyond which rays at grazing \
+                     angles cannot be followed cell by cell in double precision; scale the map \
+                     down (--height-scale)",
+                    i / w,
+                    i % w,
+                    z[i],
+                    z[i] * cell_mm
+                ),
             ));
         }
         Ok(Heightfield {

@@ -93,9 +93,12 @@ pub struct Visibility<'a> {
     w: i64,
     h: i64,
     zmax: f64,
-    /// Slope tolerance: a breakpoint must exceed the threshold by this much to occlude, so points
-    /// on the same plane (flat patches, straight groove walls) do not shadow each other.
-    tol: f64,
+    /// Height tolerance: a breakpoint must rise this much above the threshold line to occlude,
+    /// so that points on the same plane (flat patches, straight groove walls) do not shadow
+    /// each other. A height, not a slope: far breakpoints are judged as exactly as near ones (a
+    /// slope tolerance proportional to the relief let marches over very tall surfaces run for
+    /// ever without deciding).
+    htol: f64,
     /// Side of the square blocks of cells whose maximum height lets the march skip them (1: none).
     bsize: i64,
     /// Blocks per row and per column.
@@ -112,7 +115,7 @@ pub struct Visibility<'a> {
 impl<'a> Visibility<'a> {
     pub fn new(hf: &'a Heightfield) -> Self {
         let (lo, hi) = hf.min_max();
-        let tol = 1e-10 * (1.0 + (hi - lo).abs());
+        let htol = 1e-10 * (1.0 + (hi - lo).abs()) + 64.0 * f64::EPSILON * hi.abs().max(lo.abs());
         let (w, h) = (hf.width() as i64, hf.height() as i64);
         let bsize = [8i64, 4, 2]
             .into_iter()
@@ -136,7 +139,7 @@ impl<'a> Visibility<'a> {
             w,
             h,
             zmax: hi,
-            tol,
+            htol,
             bsize,
             bw,
             bh,
@@ -214,6 +217,21 @@ impl<'a> Visibility<'a> {
         floor: f64,
         stop_above: f64,
     ) -> f64 {
+        self.march(px, py, pz, az, floor, stop_above).0
+    }
+
+    /// The march of [`Visibility::horizon_along`]: the best slope, and whether the march
+    /// stopped because a breakpoint rose above `stop_above` by more than the height tolerance
+    /// (`(h - p_z - htol) / s > stop_above`, the test of [`Visibility::visible_dir`]).
+    fn march(
+        &self,
+        px: f64,
+        py: f64,
+        pz: f64,
+        az: &Azimuth,
+        floor: f64,
+        stop_above: f64,
+    ) -> (f64, bool) {
         let mut best = floor.max(MIN_SLOPE);
         let headroom = self.zmax - pz;
         // On a line that repeats after `period`, later copies of a point are farther away, so
@@ -230,8 +248,8 @@ impl<'a> Visibility<'a> {
                     cur_block = b;
                     if walk.s_in > MIN_RUN && self.block_max(b) - pz <= best * walk.s_in {
                         let s_out = walk.block_exit(self.bsize, b);
-                        if headroom <= best * s_out {
-                            return best;
+                        if headroom <= best * s_out || s_out > period {
+                            return (best, false);
                         }
                         walk.restart(s_out);
                         continue;
@@ -245,8 +263,8 @@ impl<'a> Visibility<'a> {
                     let slope = (walk.height_at(sd, &c) - pz) / sd;
                     if slope > best {
                         best = slope;
-                        if best > stop_above + self.tol {
-                            return best;
+                        if best > stop_above + self.htol / sd {
+                            return (best, true);
                         }
                     }
                 }
@@ -255,13 +273,13 @@ impl<'a> Visibility<'a> {
                 let slope = (walk.height_at(s_exit, &c) - pz) / s_exit;
                 if slope > best {
                     best = slope;
-                    if best > stop_above + self.tol {
-                        return best;
+                    if best > stop_above + self.htol / s_exit {
+                        return (best, true);
                     }
                 }
                 // Nothing farther can rise above the best slope so far.
                 if headroom / s_exit <= best || s_exit > period {
-                    return best;
+                    return (best, false);
                 }
             }
             walk.step();
@@ -303,9 +321,16 @@ impl<'a> Visibility<'a> {
         };
         let m = al.m.max(MIN_SLOPE);
         let (dx, dy) = (al.dx, al.dy);
-        // Start where the ray is at the highest surface point; walk along -d, descending.
+        // Start where the ray is at the highest surface point; walk along -d, descending. The
+        // start is taken back into the period (whole periods change nothing on a periodic
+        // surface), so that a tall surface seen at a grazing angle, whose start lies `zmax / m`
+        // away, is walked at small coordinates, where rounding stays far below a cell.
         let zs = self.zmax;
-        let (qx, qy) = (u + zs / m * dx, v + zs / m * dy);
+        let (wp, hp) = (self.w as f64, self.h as f64);
+        let (qx, qy) = (
+            (u + zs / m * dx).rem_euclid(wp),
+            (v + zs / m * dy).rem_euclid(hp),
+        );
         let mut walk = CellWalk::new(qx, qy, &al.back, self.w, self.h);
         let mut cur_block = walk.block(self.bshift);
         let g_at = |s: f64, h: f64| h - (zs - m * s);
@@ -324,7 +349,12 @@ impl<'a> Visibility<'a> {
             };
             let (fx, fy) = walk.local(0.5 * (s0 + s1));
             let tri = if fx >= fy { 0 } else { 1 };
-            let p = Vec3::new(qx - s * dx, qy - s * dy, zs - m * s);
+            // In the period, like the start (the hit may lie far from it).
+            let p = Vec3::new(
+                (qx - s * dx).rem_euclid(wp),
+                (qy - s * dy).rem_euclid(hp),
+                zs - m * s,
+            );
             (
                 p,
                 2 * (walk.iy as usize * self.w as usize + walk.ix as usize) + tri,
@@ -444,7 +474,7 @@ impl<'a> Visibility<'a> {
         match &dir.along {
             // Straight up: nothing on a heightfield is above the zenith ray.
             None => dir.w.z > 0.0,
-            Some(al) => self.horizon_along(px, py, pz, &al.fwd, al.m, al.m) <= al.m + self.tol,
+            Some(al) => !self.march(px, py, pz, &al.fwd, al.m, al.m).1,
         }
     }
 }
@@ -543,9 +573,12 @@ impl CellWalk {
         self.s_in = s_in;
     }
 
-    /// Restart just past distance `s` (after skipping a block).
+    /// Restart just past distance `s` (after skipping a block). The nudge past `s` grows with
+    /// the coordinates' magnitude, so that it still moves the probe where a rounding unit of
+    /// `px + s dx` exceeds 1e-7 (tall surfaces marched far at grazing angles).
     fn restart(&mut self, s: f64) {
-        self.enter(s + 1e-7, s);
+        let scale = s.abs() + self.px.abs() + self.py.abs();
+        self.enter(s + 1e-7f64.max(8.0 * f64::EPSILON * scale), s);
     }
 
     #[inline]
