@@ -136,14 +136,19 @@ pub fn load_heightmap(path: &Path, patch_size_mm: f64, height_scale: f64) -> Res
     Heightfield::new(cols, rows, z, cell_mm, ctx)
 }
 
+/// Whether a geometry reference names a heightmap file (an existing file, or a name ending in
+/// `.npy` or `.png`) rather than a procedural spec.
+pub fn is_heightmap_file(spec: &str) -> bool {
+    let lower = spec.trim().to_ascii_lowercase();
+    Path::new(spec).is_file() || lower.ends_with(".npy") || lower.ends_with(".png")
+}
+
 /// A `--geometry` argument: an existing file, or anything ending in `.npy`/`.png`, is loaded with
 /// [`load_heightmap`]; otherwise it is a procedural spec (see [`crate::generators`]) whose grid
 /// heights are multiplied by `height_scale` and whose `cell_mm` is `patch_size_mm / n`.
 pub fn resolve_geometry(spec: &str, patch_size_mm: f64, height_scale: f64) -> Result<Heightfield> {
-    let lower = spec.trim().to_ascii_lowercase();
-    let path = Path::new(spec);
-    if path.is_file() || lower.ends_with(".npy") || lower.ends_with(".png") {
-        return load_heightmap(path, patch_size_mm, height_scale);
+    if is_heightmap_file(spec) {
+        return load_heightmap(Path::new(spec), patch_size_mm, height_scale);
     }
     check_scales(spec, patch_size_mm, height_scale)?;
     let hf = parse_generator(spec)?.build()?;

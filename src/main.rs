@@ -90,9 +90,9 @@ enum Cmd {
         quiet: bool,
     },
     /// Large-scale fbar of one small-scale geometry and material at given direction pairs.
-    #[command(after_help = forward_help())]
+    #[command(after_help = forward_help(), allow_negative_numbers = true)]
     Forward {
-        /// Heightmap file (.npy float32/float64 H×W, 8/16-bit grey .png) or a procedural spec
+        /// Heightmap file (.npy H×W of floats or integers, 8/16-bit grey .png) or a procedural spec
         /// such as 'vgroove:period=16,depth=4' (see below).
         #[arg(long, short = 'g', default_value = "bumps")]
         geometry: String,
@@ -124,6 +124,7 @@ enum Cmd {
         quiet: bool,
     },
     /// Find small-scale geometry and/or material that reproduce a target large-scale look.
+    #[command(allow_negative_numbers = true)]
     Solve {
         /// Target look: any material spec, 'ward:ax=0.30,ay=0.08', or a MERL .binary path.
         #[arg(long, short = 't', default_value = "ward:ax=0.30,ay=0.08")]

@@ -125,6 +125,47 @@ pub fn required<T>(file: &Path, section: &str, key: &str, v: Option<T>, what: &s
     })
 }
 
+/// Fixed-length arrays of numbers for `#[serde(deserialize_with = ...)]`. TOML's deserializer
+/// fills a `[f64; N]` from the first `N` elements of a longer array and drops the rest; these
+/// refuse any other length (`invalid length 3, expected an array of 2 numbers`).
+pub mod exact_len {
+    use serde::de::{Deserializer, Error};
+    use serde::Deserialize;
+    use std::collections::BTreeMap;
+
+    fn fixed<const N: usize, E: Error>(v: Vec<f64>) -> std::result::Result<[f64; N], E> {
+        let n = v.len();
+        v.try_into()
+            .map_err(|_| E::invalid_length(n, &format!("an array of {N} numbers").as_str()))
+    }
+
+    pub fn array2<'de, D: Deserializer<'de>>(d: D) -> std::result::Result<[f64; 2], D::Error> {
+        fixed(Vec::deserialize(d)?)
+    }
+
+    pub fn option_array3<'de, D: Deserializer<'de>>(
+        d: D,
+    ) -> std::result::Result<Option<[f64; 3]>, D::Error> {
+        Option::<Vec<f64>>::deserialize(d)?.map(fixed).transpose()
+    }
+
+    /// A table of `name = [lo, hi]` ranges.
+    pub fn ranges<'de, D: Deserializer<'de>>(
+        d: D,
+    ) -> std::result::Result<BTreeMap<String, [f64; 2]>, D::Error> {
+        BTreeMap::<String, Vec<f64>>::deserialize(d)?
+            .into_iter()
+            .map(|(k, v)| {
+                let n = v.len();
+                let r: [f64; 2] = v.try_into().map_err(|_| {
+                    D::Error::invalid_length(n, &format!("`{k}` = [low, high], 2 numbers").as_str())
+                })?;
+                Ok((k, r))
+            })
+            .collect()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -153,5 +194,32 @@ mod tests {
             s.contains("unknown key `a_mn`") && s.contains("`a_mm`"),
             "{s}"
         );
+    }
+
+    #[derive(Deserialize, Debug)]
+    #[allow(dead_code)]
+    struct A {
+        #[serde(deserialize_with = "exact_len::array2")]
+        tile_mm: [f64; 2],
+        #[serde(default, deserialize_with = "exact_len::option_array3")]
+        colour: Option<[f64; 3]>,
+    }
+
+    #[test]
+    fn fixed_arrays_refuse_other_lengths() {
+        let p = Path::new("x.toml");
+        let a = parse::<A>(p, "tile_mm = [1, 2]\n").unwrap();
+        assert_eq!((a.tile_mm, a.colour), ([1.0, 2.0], None));
+        for (src, key) in [
+            ("tile_mm = [1, 2, 3]\n", "tile_mm"),
+            ("tile_mm = [1]\n", "tile_mm"),
+            ("tile_mm = [1, 2]\ncolour = [1, 2, 3, 4]\n", "colour"),
+        ] {
+            let s = parse::<A>(p, src).unwrap_err().to_string();
+            assert!(
+                s.contains(key) && s.contains("invalid length"),
+                "{src}: {s}"
+            );
+        }
     }
 }

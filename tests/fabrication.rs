@@ -529,6 +529,15 @@ fn exported_tiles_are_closed_positive_and_deterministic() {
             None,
             Some(Decimation::MaxErrorMm(0.02)),
             Some(Decimation::TriangleBudget(4000)),
+            // Both: the bound's mesh fits the budget; then a bound no budget-sized mesh meets.
+            Some(Decimation::Both {
+                max_error_mm: 0.02,
+                budget: 1_000_000,
+            }),
+            Some(Decimation::Both {
+                max_error_mm: 1e-9,
+                budget: 4000,
+            }),
         ] {
             let r = export_detail(&hf, &p, 8.0, (20.0, 15.0), &d, "t", dec).unwrap();
             assert_eq!(r.check.genus, 0);
@@ -555,6 +564,19 @@ fn exported_tiles_are_closed_positive_and_deterministic() {
                 }
                 Some(Decimation::TriangleBudget(n)) => {
                     assert!(r.budget_met && r.triangles <= n, "{spec}: {}", r.triangles)
+                }
+                // Both limits met, or (the bound's mesh over the budget) the budget kept at a
+                // larger error, and said so.
+                Some(Decimation::Both {
+                    max_error_mm: e,
+                    budget: n,
+                }) => {
+                    assert!(r.triangles <= n, "{spec}: {r:?}");
+                    assert_eq!(r.budget_met, r.max_height_error_mm <= e, "{spec}: {r:?}");
+                    if n == 4000 && spec != "vgroove:n=64" {
+                        // (planar grooves meet any bound within 4000 triangles)
+                        assert!(!r.budget_met, "{spec}: {r:?}");
+                    }
                 }
             }
             // the solid's volume is the base slab plus the relief under the triangulated top.

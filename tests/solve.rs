@@ -609,3 +609,87 @@ fn design_job(
     };
     (out, job)
 }
+
+/// What a new user's scene runs into: every input is checked before the library is opened;
+/// paths in a scene are relative to the scene's file; `summary.json` records the resolved
+/// profile (tool and diameter) for independent checks; a fixed geometry keeps its relief under
+/// refinement; the partial output of a killed run is cleaned up; arrays of the wrong length are
+/// refused.
+#[test]
+fn design_checks_inputs_first_and_reads_paths_beside_the_scene() {
+    let lib = tiny_library();
+    let (out, mut job) = design_job(
+        "design-user",
+        &lib,
+        "name = \"u1\"\ntarget = \"ggx:alpha=0.2\"\nfixed_geometry = \"vgroove:n=32,period=8,depth=2\"\n",
+    );
+    // A profile of the user's own next to the scene, named by a relative path: the test runs in
+    // the crate's directory, so only the scene's directory can resolve it.
+    let scene_dir = out.join("scenes");
+    std::fs::create_dir_all(&scene_dir).unwrap();
+    std::fs::write(
+        scene_dir.join("myshop.toml"),
+        "extends = \"cnc-ball1-aluminium\"\ntool = \"ball-0.5mm\"\n",
+    )
+    .unwrap();
+    let text = std::fs::read_to_string(job.scene.as_ref().unwrap())
+        .unwrap()
+        .replace("\"cnc-ball1-aluminium\"", "\"myshop.toml\"");
+    let scene = scene_dir.join("u1.toml");
+    std::fs::write(&scene, &text).unwrap();
+    job.scene = Some(scene.clone());
+    // A killed earlier run's partial output (no such process).
+    let stale = out.join(".u1.partial-4000000000");
+    std::fs::create_dir_all(&stale).unwrap();
+    biscale::design::run(&job).unwrap();
+    assert!(!stale.exists(), "the stale partial output is still there");
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("u1/summary.json")).unwrap()).unwrap();
+    assert_eq!(
+        summary["fabrication_profile"]["tool"]["diameter_mm"].as_f64(),
+        Some(0.5),
+        "{}",
+        summary["fabrication_profile"]
+    );
+    // The fixed geometry's relief is not refined (only the rotation and the material are).
+    for d in summary["details"].as_array().unwrap() {
+        if let Some(ch) = d["refinement"]["changes"].as_array() {
+            let scale = ch.iter().find(|c| c["name"] == "scale").unwrap();
+            assert_eq!(scale["after"].as_f64(), Some(1.0), "{ch:?}");
+        }
+        assert!(
+            !d["geometry"].as_str().unwrap().contains("heights ×"),
+            "{d}"
+        );
+    }
+    // Bad input is reported before the library is opened: a library that does not exist is
+    // not what the error is about.
+    let bad = |extra: &str, want: &str| {
+        let t = text.replace(
+            "fixed_geometry = \"vgroove:n=32,period=8,depth=2\"\n",
+            extra,
+        );
+        std::fs::write(&scene, t).unwrap();
+        let e = biscale::design::run(&biscale::design::DesignJob {
+            library: Some(out.join("no-such-library")),
+            force: true,
+            ..job.clone()
+        })
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(e.contains(want) && e.contains("u1.toml"), "{extra}: {e}");
+    };
+    bad(
+        "fixed_material = \"ggx:alpah=0.2\"\n",
+        "unknown parameter 'alpah'",
+    );
+    bad("fixed_geometry = \"vgroove:perid=8\"\n", "perid");
+    bad("fixed_geometry = \"missing.npy\"\n", "missing.npy");
+    bad("blur = [1, 1, 1]\n", "invalid length 3");
+    bad(
+        "fixed_material = \"ggx:alpha=0.1\"\nheightmap_patch_mm = 5\n",
+        "heightmap_patch_mm",
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}

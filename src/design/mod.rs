@@ -74,15 +74,24 @@ pub struct DetailSummary {
     pub triangles: Option<usize>,
     pub triangles_full: Option<usize>,
     pub mesh_height_error_mm: Option<f64>,
+    /// The caption of `detail-N-slices.png` (which curve is which, the axes), for the report.
+    #[serde(skip)]
+    pub slices_caption: Option<String>,
 }
 
 #[derive(Debug, Clone, Serialize)]
 pub struct Summary {
     pub scene: Scene,
+    /// The profile's name, and the profile as resolved (every file read, machine, tool with its
+    /// diameter, stock, limits, weights): what an independent check of the export needs.
     pub profile: String,
+    pub fabrication_profile: crate::fab::Profile,
     pub library: String,
     pub mode: String,
     pub candidates_checked: usize,
+    /// Distinct candidate geometries rejected; `rejected` counts reasons (a geometry can fail
+    /// several checks, so its counts may add up to more).
+    pub candidates_rejected: usize,
     pub rejected: BTreeMap<String, usize>,
     pub rejections: Vec<(String, String, String)>,
     pub details: Vec<DetailSummary>,
@@ -132,6 +141,36 @@ pub fn run(job: &DesignJob) -> Result<String> {
         Some(p) => Scene::load(p)?,
         None => Scene::builtin()?,
     };
+    // Every input is read and checked before any work (and before the output check, so that
+    // a bad scene is reported as such): the profile, the target, what is fixed.
+    let ctx = |key: &str| match &job.scene {
+        Some(p) => format!("{}: key `{key}`", p.display()),
+        None => format!("built-in scene: key `{key}`"),
+    };
+    let profile = load_profile(&scene.profile, &FabPaths::default_paths())
+        .map_err(|e| e.within(ctx("profile")))?;
+    let edits = Edits {
+        brightness: scene.brightness,
+        contrast: scene.contrast,
+        blur: scene.blur,
+    };
+    let look =
+        Look::from_spec(&scene.target, edits, scene.colour).map_err(|e| e.within(ctx("target")))?;
+    let fixed_mat = match &scene.fixed_material {
+        Some(m) => Some(parse_material(m).map_err(|e| e.within(ctx("fixed_material")))?),
+        None => None,
+    };
+    let fixed_hf = match &scene.fixed_geometry {
+        Some(g) => Some(
+            crate::heightmap_io::resolve_geometry(
+                g,
+                scene.heightmap_patch_mm.unwrap_or(10.0),
+                scene.heightmap_height_scale.unwrap_or(1.0),
+            )
+            .map_err(|e| e.within(ctx("fixed_geometry")))?,
+        ),
+        None => None,
+    };
     let out_dir = job.outputs.join(&scene.name);
     if out_dir.exists() && !job.force {
         return Err(Error::new(
@@ -139,15 +178,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
             "already exists; pass --force to replace it, or rename the scene",
         ));
     }
-    let profile = load_profile(&scene.profile, &FabPaths::default_paths())
-        .map_err(|e| e.within("scene profile"))?;
-    let edits = Edits {
-        brightness: scene.brightness,
-        contrast: scene.contrast,
-        blur: scene.blur,
-    };
-    let look = Look::from_spec(&scene.target, edits, scene.colour)
-        .map_err(|e| e.within("scene target"))?;
+    remove_stale(&job.outputs, &scene.name);
     note(
         format!(
             "scene '{}': target {}, profile {}, tile {}×{} mm",
@@ -181,23 +212,18 @@ pub fn run(job: &DesignJob) -> Result<String> {
         seed: scene.seed,
         ..Default::default()
     };
-    let (mode, result, fixed_hf) = if let Some(m) = &scene.fixed_material {
-        let mat = parse_material(m).map_err(|e| e.within("scene fixed_material"))?;
+    let (mode, result) = if let (Some(mat), Some(m)) = (&fixed_mat, &scene.fixed_material) {
         (
             "geometry solver (material fixed)",
-            crate::solve::geometry::solve(&lib, &look, &mat, m, None, &opt)?,
-            None,
+            crate::solve::geometry::solve(&lib, &look, mat, m, None, &opt)?,
         )
-    } else if let Some(g) = &scene.fixed_geometry {
-        let hf = crate::heightmap_io::resolve_geometry(g, 10.0, 1.0)
-            .map_err(|e| e.within("scene fixed_geometry"))?;
-        let r = crate::solve::material::solve(&lib, &look, &hf, g, None, 0.0, &opt)?;
-        ("material solver (geometry fixed)", r, Some(hf))
+    } else if let (Some(hf), Some(g)) = (&fixed_hf, &scene.fixed_geometry) {
+        let r = crate::solve::material::solve(&lib, &look, hf, g, None, 0.0, &opt)?;
+        ("material solver (geometry fixed)", r)
     } else {
         (
             "general solver",
             crate::solve::general::solve(&lib, &look, &opt, &general)?,
-            None,
         )
     };
     note(
@@ -255,6 +281,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
     let checked: BTreeMap<String, (Heightfield, FabReport)> =
         specs.into_iter().zip(checks).collect();
     let mut counted: std::collections::BTreeSet<String> = Default::default();
+    let mut candidates_rejected = 0;
     for c in &result.candidates {
         // One detail per geometry: its best rotation (candidates come best first).
         if !counted.insert(c.geometry_spec.clone()) {
@@ -262,6 +289,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
         }
         let (hf, rep) = checked[&c.geometry_spec].clone();
         if !rep.feasible {
+            candidates_rejected += 1;
             for r in &rep.rejections {
                 *rejected.entry(r.code.clone()).or_default() += 1;
                 rejections.push((c.geometry_spec.clone(), r.code.clone(), r.message.clone()));
@@ -313,6 +341,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
             pf: &pf,
             prefilter: prefilter_cfg.clone(),
             psi0_deg: c.psi_deg,
+            relief_fixed: fixed_hf.is_some(),
         };
         let r = refine::refine(
             &look,
@@ -350,11 +379,12 @@ pub fn run(job: &DesignJob) -> Result<String> {
                 }
                 let pf2 = &prefiltered[&c.material_spec];
                 c.psi_deg = r.psi_deg;
-                c.geometry_spec = format!(
-                    "{} (heights × {:.3})",
-                    r.geometry_spec.as_deref().unwrap_or(&c.geometry_spec),
-                    r.scale
-                );
+                let spec = r.geometry_spec.as_deref().unwrap_or(&c.geometry_spec);
+                c.geometry_spec = if r.scale == 1.0 {
+                    spec.to_string()
+                } else {
+                    format!("{spec} (heights × {:.3})", r.scale)
+                };
                 *e_design = eye.error(&look, &hf2, pf2, c.psi_deg, &opt);
                 *e_made = eye.error(&look, &rep2.made, pf2, c.psi_deg, &opt);
                 *score = *e_made + scene.cost_weight * rep2.cost.total;
@@ -366,20 +396,36 @@ pub fn run(job: &DesignJob) -> Result<String> {
     }
     if scene.refine > 0 && !ranked.is_empty() {
         ranked.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let what = match (&fixed_hf, &scene.fixed_material) {
+            (Some(_), _) => "rotation and the material's parameters (the geometry is fixed)",
+            (None, Some(_)) => "relief, rotation and shape (the material is fixed)",
+            (None, None) => "relief, rotation, shape and the material's parameters",
+        };
         note(
             format!(
-                "refinement (NLopt COBYLA: relief, rotation, shape and free material parameters): {} in {:.1} s: {}",
+                "refinement (NLopt COBYLA: {what}): {} in {:.1} s: {}",
                 refined_by_spec.len(),
                 t2.elapsed().as_secs_f64(),
                 refined_by_spec
                     .iter()
-                    .map(|(g, r)| format!(
-                        "{g}: {:.1} % -> {:.1} % ({}, {} evaluations)",
-                        r.error_before * 100.0,
-                        r.error_after * 100.0,
-                        r.status,
-                        r.evaluations
-                    ))
+                    .map(|(g, r)| {
+                        let budget = if r.max_evaluations > scene.refine_evaluations {
+                            format!(
+                                "; refine_evaluations = {} raised to {}, one more than the \
+                                 variables, which COBYLA needs to start",
+                                scene.refine_evaluations, r.max_evaluations
+                            )
+                        } else {
+                            String::new()
+                        };
+                        format!(
+                            "{g}: {:.1} % -> {:.1} % ({}, {} evaluations{budget})",
+                            r.error_before * 100.0,
+                            r.error_after * 100.0,
+                            r.status,
+                            r.evaluations
+                        )
+                    })
                     .collect::<Vec<_>>()
                     .join("; ")
             ),
@@ -416,7 +462,11 @@ pub fn run(job: &DesignJob) -> Result<String> {
             let export = if i < n_export {
                 let name = format!("detail-{rank}");
                 let dec = match (scene.decimate_max_error_mm, scene.triangle_budget) {
-                    (_, Some(b)) => Some(Decimation::TriangleBudget(b)),
+                    (Some(e), Some(b)) => Some(Decimation::Both {
+                        max_error_mm: e,
+                        budget: b,
+                    }),
+                    (None, Some(b)) => Some(Decimation::TriangleBudget(b)),
                     (Some(e), None) => Some(Decimation::MaxErrorMm(e)),
                     _ => None,
                 };
@@ -432,24 +482,61 @@ pub fn run(job: &DesignJob) -> Result<String> {
                 )?;
                 note(
                     format!(
-                        "{name}: {} triangles ({} before decimation), built and checked in {:.2} s",
+                        "{name}: {} triangles ({} before decimation, height error {:.4} mm), built and checked in {:.2} s",
                         ex.triangles,
                         ex.triangles_full,
+                        ex.max_height_error_mm,
                         t.elapsed().as_secs_f64()
                     ),
                     &mut log,
                 );
-                report::pictures(&tmp, &name, &look, hf, mat, c.psi_deg, &lib)?;
-                Some(ex)
+                if !ex.budget_met {
+                    let why = match (scene.decimate_max_error_mm, scene.triangle_budget) {
+                        (Some(e), Some(b)) => format!(
+                            "within decimate_max_error_mm = {e} mm the mesh has more than \
+                             triangle_budget = {b} triangles; the budget was kept, at a height \
+                             error of {:.4} mm",
+                            ex.max_height_error_mm
+                        ),
+                        (_, b) => format!(
+                            "no mesh of this tile fits triangle_budget = {} (the coarsest has {})",
+                            b.unwrap_or(0),
+                            ex.triangles
+                        ),
+                    };
+                    note(format!("{name}: warning: {why}"), &mut log);
+                }
+                let allowed = profile.max_deviation_frac * rep.millability.relief_mm;
+                if ex.max_height_error_mm > allowed {
+                    note(
+                        format!(
+                            "{name}: warning: the mesh's height error ({:.4} mm) exceeds what the \
+                             profile allows the made surface ({:.4} mm: max_deviation_frac {} of \
+                             the {:.4} mm relief); the appearance errors are those of the \
+                             undecimated surface",
+                            ex.max_height_error_mm,
+                            allowed,
+                            profile.max_deviation_frac,
+                            rep.millability.relief_mm
+                        ),
+                        &mut log,
+                    );
+                }
+                let caption = report::pictures(&tmp, &name, &look, hf, mat, c.psi_deg, &lib)?;
+                Some((ex, caption))
             } else {
                 None
+            };
+            let (export, slices_caption) = match export {
+                Some((e, c)) => (Some(e), Some(c)),
+                None => (None, None),
             };
             let rel = |p: &Path| p.file_name().map(|n| n.to_string_lossy().into_owned());
             details.push(DetailSummary {
                 rank,
                 geometry: c.geometry_spec.clone(),
                 material: c.material_spec.clone(),
-                rotation_deg: c.psi_deg,
+                rotation_deg: signed_degrees(c.psi_deg),
                 colour: c.colour,
                 stl: export.as_ref().and_then(|e| rel(&e.stl)),
                 heightmap_png: export.as_ref().and_then(|e| rel(&e.png)),
@@ -469,6 +556,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
                 triangles: export.as_ref().map(|e| e.triangles),
                 triangles_full: export.as_ref().map(|e| e.triangles_full),
                 mesh_height_error_mm: export.as_ref().map(|e| e.max_height_error_mm),
+                slices_caption,
             });
         }
         Ok(details)
@@ -483,9 +571,11 @@ pub fn run(job: &DesignJob) -> Result<String> {
     let summary = Summary {
         scene: scene.clone(),
         profile: profile.name.clone(),
+        fabrication_profile: profile.clone(),
         library: lib.dir.display().to_string(),
         mode: mode.into(),
         candidates_checked: result.candidates.len(),
+        candidates_rejected,
         rejected,
         rejections,
         details,
@@ -503,6 +593,39 @@ pub fn run(job: &DesignJob) -> Result<String> {
         return Err(e);
     }
     Ok(report::text(&summary, &out_dir, t0.elapsed().as_secs_f64()))
+}
+
+/// An angle in degrees as the equal one in (-180°, 180°] (a tile's mounting rotation).
+fn signed_degrees(a: f64) -> f64 {
+    let r = a.rem_euclid(360.0);
+    if r > 180.0 {
+        r - 360.0
+    } else {
+        r
+    }
+}
+
+/// Remove the temporary directories (`.NAME.partial-PID`) that runs of scene `name` left in
+/// `outputs` when they were killed (their process is gone). Only where `/proc` tells which
+/// processes run; elsewhere they are left for the user.
+fn remove_stale(outputs: &Path, name: &str) {
+    let proc_ = Path::new("/proc");
+    if !proc_.join("self").exists() {
+        return;
+    }
+    let prefix = format!(".{name}.partial-");
+    let Ok(entries) = std::fs::read_dir(outputs) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let file = e.file_name();
+        let Some(pid) = file.to_str().and_then(|f| f.strip_prefix(&prefix)) else {
+            continue;
+        };
+        if pid.parse::<u32>().is_ok() && !proc_.join(pid).exists() {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
 }
 
 /// Move the finished temporary directory to `out`, replacing an older output only after the new

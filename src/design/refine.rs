@@ -5,7 +5,7 @@
 //! constraints, and the appearance of the *milled* surface as the objective.
 //!
 //! Variables, in order:
-//! - `scale` (multiplies the heights, 0.5–1.5);
+//! - `scale` (multiplies the heights, 0.5–1.5; held at 1 when the scene fixes the geometry);
 //! - the rotation `psi` (±45° around the solver's);
 //! - one factor (0.6–1.6) per shape parameter of the generator
 //!   ([`crate::generators::Generator::shape_params`]: periods, widths, radii, … — not counts or
@@ -51,6 +51,9 @@ pub struct Subject<'a> {
     /// The prefilter settings for a changed material (the library's).
     pub prefilter: PrefilterConfig,
     pub psi0_deg: f64,
+    /// The scene fixes the geometry: its relief is kept (`scale` stays 1); only the rotation
+    /// and a free material move.
+    pub relief_fixed: bool,
 }
 
 /// One refined parameter: its name (`scale`, `psi_deg`, a generator key, or `material.KEY`
@@ -78,6 +81,9 @@ pub struct Refined {
     pub error_before: f64,
     pub error_after: f64,
     pub evaluations: usize,
+    /// The evaluation budget: the scene's `refine_evaluations`, or one more than the variables
+    /// when that is larger (COBYLA needs as many to start).
+    pub max_evaluations: u32,
     /// Whether the refined detail replaced the original (it must be feasible and better).
     pub accepted: bool,
     pub status: String,
@@ -197,12 +203,17 @@ pub fn refine(
     x0[1] = psi0;
     let (mut lo, mut hi, mut step) = (vec![0.5; n], vec![1.5; n], vec![0.15; n]);
     (lo[1], hi[1], step[1]) = (psi0 - 45.0, psi0 + 45.0, 15.0);
+    if subject.relief_fixed {
+        // NLopt fixes a variable whose bounds are equal.
+        (lo[0], hi[0]) = (1.0, 1.0);
+    }
     for i in 2..2 + ns {
         (lo[i], hi[i]) = (0.6, 1.6);
     }
     for i in 2 + ns..n {
         (lo[i], hi[i], step[i]) = (0.5, 2.0, 0.2);
     }
+    let max_evaluations = max_evals.max(n as u32 + 1);
     let before = error_at(&x0);
     let mut opt_ = Nlopt::new(Algorithm::Cobyla, n, objective, Target::Minimize, ());
     let mut status = String::new();
@@ -211,7 +222,7 @@ pub fn refine(
         opt_.set_upper_bounds(&hi),
         opt_.add_inequality_constraint(deviation, (), 1e-4),
         opt_.add_inequality_constraint(relief, (), 1e-4),
-        opt_.set_maxeval(max_evals.max(n as u32 + 1)),
+        opt_.set_maxeval(max_evaluations),
         opt_.set_xtol_rel(1e-3),
         opt_.set_initial_step(&step),
     ];
@@ -280,6 +291,7 @@ pub fn refine(
         error_before: before,
         error_after: if accepted { after } else { before },
         evaluations: evals.get(),
+        max_evaluations,
         accepted,
         status,
     })

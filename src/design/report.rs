@@ -91,11 +91,10 @@ pub fn write_markdown(dir: &Path, s: &Summary) -> Result<()> {
         "Target `{}`; {}; profile `{}`; tile {} × {} mm; library `{}`.\n",
         s.scene.target, s.mode, s.profile, s.scene.tile_mm[0], s.scene.tile_mm[1], s.library
     );
-    let _ = writeln!(
-        r,
-        "{} candidates checked; rejected by reason: {:?}.\n",
-        s.candidates_checked, s.rejected
-    );
+    let _ = writeln!(r, "{}\n", rejected_line(s));
+    if let Some(note) = match_note(s) {
+        let _ = writeln!(r, "**{note}**\n");
+    }
     let _ = writeln!(r, "| rank | geometry | material | rotation | patch | max / RMS deviation | min feature | error designed → made | cost | STL |\n|---|---|---|---|---|---|---|---|---|---|");
     for d in &s.details {
         let _ = writeln!(
@@ -123,8 +122,12 @@ pub fn write_markdown(dir: &Path, s: &Summary) -> Result<()> {
             r,
             "\n## {n}\n\nTarget (left) and this detail (right), rendered as large-scale BRDFs on spheres:\n\n![{n} spheres]({n}-spheres.png)\n\n\
              One period of the heightfield: ![{n} heightfield]({n}-heightfield.png)\n\n\
-             In-plane BRDF slices (target and detail; panels for incidence 15°, 45°, 70°): ![{n} slices]({n}-slices.png)\n\n\
+             {}: ![{n} slices]({n}-slices.png)\n\n\
              Mount the tile rotated by {:.0}° about its normal relative to the design frame. Files: `{}`, `{}` (scale: `{}`).",
+            d.slices_caption
+                .as_deref()
+                .unwrap_or("In-plane BRDF slices")
+                .trim_end_matches('.'),
             d.rotation_deg,
             d.stl.clone().unwrap_or_default(),
             d.heightmap_png.clone().unwrap_or_default(),
@@ -162,11 +165,58 @@ pub fn text(s: &Summary, out: &Path, secs: f64) -> String {
             d.stl.clone().unwrap_or_else(|| "(not exported)".into())
         );
     }
+    if let Some(note) = match_note(s) {
+        let _ = writeln!(t, "  {note}");
+    }
     let _ = writeln!(
         t,
-        "  rejected: {:?}; report: {}",
-        s.rejected,
+        "  {}; report: {}",
+        rejected_line(s),
         out.join("report.md").display()
     );
     t
+}
+
+/// How many candidates were checked and rejected, and for what.
+fn rejected_line(s: &Summary) -> String {
+    if s.candidates_rejected == 0 {
+        return format!("{} candidates checked, none rejected", s.candidates_checked);
+    }
+    let reasons: Vec<String> = s.rejected.iter().map(|(k, n)| format!("{k} {n}")).collect();
+    format!(
+        "{} candidates checked, {} geometries rejected (by reason, a geometry may fail several: {})",
+        s.candidates_checked,
+        s.candidates_rejected,
+        reasons.join(", ")
+    )
+}
+
+/// When even the best detail is not visually equivalent to the target (the paper's 7 %), a
+/// line saying so, as `biscale solve` does.
+fn match_note(s: &Summary) -> Option<String> {
+    let bound = crate::solve::job::MATCH_BOUND;
+    let best = s
+        .details
+        .iter()
+        .map(|d| d.appearance_error_made)
+        .fold(f64::INFINITY, f64::min);
+    if s.details.is_empty() {
+        return Some(
+            "No detail is makeable with this profile: see the rejected candidates.".into(),
+        );
+    }
+    (best > bound).then(|| {
+        format!(
+            "No match: the best made detail is {:.1} % from the target, over the {:.0} % within \
+             which a look counts as reproduced (paper Table 1): the solver found nothing closer \
+             {}that this profile can make.",
+            best * 100.0,
+            bound * 100.0,
+            if s.mode.contains("fixed") {
+                "with what the scene fixes "
+            } else {
+                ""
+            }
+        )
+    })
 }

@@ -4,6 +4,7 @@
 //! out-of-range values are errors naming the file and the key.
 
 use crate::error::{Error, Result};
+use crate::tomlfile::exact_len;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -40,10 +41,10 @@ pub struct Scene {
     pub contrast: f64,
     /// Angular edit of the target: `[sx, sy]` blur (> 1) or sharpen (< 1) of the highlight along
     /// x and y (different values stretch it).
-    #[serde(default = "unit_blur")]
+    #[serde(default = "unit_blur", deserialize_with = "exact_len::array2")]
     pub blur: [f64; 2],
     /// Target colour `[r, g, b]` (average fbar per channel), optional.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "exact_len::option_array3")]
     pub colour: Option<[f64; 3]>,
     /// Fix the small-scale material (a spec): solve for the geometry only.
     #[serde(default)]
@@ -51,9 +52,18 @@ pub struct Scene {
     /// Fix the geometry (a procedural spec or heightmap path): solve for the material only.
     #[serde(default)]
     pub fixed_geometry: Option<String>,
+    /// A heightmap `fixed_geometry`'s period along x in mm and the factor on its stored values
+    /// (heights in mm), as `forward`'s `--patch-size` and `--height-scale` (defaults 10 and 1).
+    /// Only the relief's proportion to the period matters to the look; the size the detail is
+    /// made at is chosen by the scale window.
+    #[serde(default)]
+    pub heightmap_patch_mm: Option<f64>,
+    #[serde(default)]
+    pub heightmap_height_scale: Option<f64>,
     /// Fabrication profile: a shipped name (`profiles/fabrication/`) or a path.
     pub profile: String,
     /// Physical tile to make, `[x, y]` in mm.
+    #[serde(deserialize_with = "exact_len::array2")]
     pub tile_mm: [f64; 2],
     /// Distance the surface is seen from, mm (overrides the profile's).
     #[serde(default)]
@@ -132,10 +142,45 @@ impl Scene {
         Ok(s)
     }
 
+    /// Read a scene file; its relative paths are taken relative to its directory
+    /// ([`Scene::resolve_paths`]).
     pub fn load(path: &Path) -> Result<Self> {
         let text =
             std::fs::read_to_string(path).map_err(|e| Error::io(path, "read the scene", e))?;
-        Self::parse(&text, &path.display().to_string())
+        let mut s = Self::parse(&text, &path.display().to_string())?;
+        s.resolve_paths(path.parent().unwrap_or(Path::new("")));
+        Ok(s)
+    }
+
+    /// Make the scene's relative paths — a fabrication or library profile given as a path, a
+    /// heightmap `fixed_geometry`, a MERL file in `target` or `fixed_material` — relative to
+    /// `dir` (the scene file's directory), so a scene runs the same from any working
+    /// directory. A relative path that exists only from the working directory is kept as it is.
+    pub fn resolve_paths(&mut self, dir: &Path) {
+        let under = |v: &str| -> String {
+            let p = Path::new(v);
+            let there = dir.join(p);
+            if p.is_absolute() || dir.as_os_str().is_empty() || (p.exists() && !there.exists()) {
+                v.to_string()
+            } else {
+                there.display().to_string()
+            }
+        };
+        if crate::fab::profile::is_path(&self.profile) {
+            self.profile = under(&self.profile);
+        }
+        if crate::library::profile::is_path(&self.library_profile) {
+            self.library_profile = under(&self.library_profile);
+        }
+        if let Some(g) = &mut self.fixed_geometry {
+            if crate::heightmap_io::is_heightmap_file(g) {
+                *g = under(g);
+            }
+        }
+        self.target = crate::material::map_path_terms(&self.target, under);
+        if let Some(m) = &mut self.fixed_material {
+            *m = crate::material::map_path_terms(m, under);
+        }
     }
 
     pub fn builtin() -> Result<Self> {
@@ -185,6 +230,29 @@ impl Scene {
                 "fixed_material / fixed_geometry",
                 "fix at most one of them",
             ));
+        }
+        for (k, v) in [
+            ("heightmap_patch_mm", self.heightmap_patch_mm),
+            ("heightmap_height_scale", self.heightmap_height_scale),
+        ] {
+            let Some(v) = v else { continue };
+            if !(v.is_finite() && v > 0.0) {
+                return Err(Error::new(
+                    k,
+                    format!("expected a positive number, got {v}"),
+                ));
+            }
+            if !self
+                .fixed_geometry
+                .as_deref()
+                .is_some_and(crate::heightmap_io::is_heightmap_file)
+            {
+                return Err(Error::new(
+                    k,
+                    "applies to a heightmap file given as `fixed_geometry` (.npy or .png); \
+                     procedural geometries set their heights in their spec",
+                ));
+            }
         }
         if self.candidates == 0 || self.psi == 0 {
             return Err(Error::new("candidates / psi", "expected integers >= 1"));

@@ -78,6 +78,10 @@ pub fn bench_fab(profile: &Profile, reps: usize) -> Result<String> {
                     None => "none".to_string(),
                     Some(Decimation::MaxErrorMm(e)) => format!("≤ {e} mm"),
                     Some(Decimation::TriangleBudget(n)) => format!("≤ {n} triangles"),
+                    Some(Decimation::Both {
+                        max_error_mm,
+                        budget,
+                    }) => format!("≤ {max_error_mm} mm, ≤ {budget} triangles"),
                 },
                 r.triangles_full,
                 r.triangles,

@@ -7,9 +7,11 @@
 //! carry normals computed from their vertices; the 80-byte header is zero, so the same input
 //! gives the same bytes.
 //!
-//! Decimation (optional, [`Decimation`]): a maximum height error in mm, or a triangle budget
-//! (the smallest error whose mesh fits the budget, by bisection over the error); the report
-//! gives the triangle count before and after and the error measured at every sample.
+//! Decimation (optional, [`Decimation`]): a maximum height error in mm, a triangle budget
+//! (the smallest error whose mesh fits the budget, by bisection over the error), or both (the
+//! error bound, unless its mesh is over the budget: then the budget's, and the report says the
+//! bound was not met); the report gives the triangle count before and after and the error
+//! measured at every sample.
 
 use super::decimate::{full_leaves, leaves_within};
 use super::mesh::{solid, verify, Mesh, MeshCheck, TileGrid};
@@ -27,6 +29,8 @@ pub enum Decimation {
     MaxErrorMm(f64),
     /// Largest triangle count of the whole solid.
     TriangleBudget(usize),
+    /// Both: the bound's mesh when it fits the budget, else the budget's (a larger error).
+    Both { max_error_mm: f64, budget: usize },
 }
 
 /// What an export wrote and measured.
@@ -47,7 +51,8 @@ pub struct ExportReport {
     pub triangles: usize,
     /// Largest height difference between the written surface and the design samples, mm.
     pub max_height_error_mm: f64,
-    /// Whether a triangle budget asked for could be met.
+    /// Whether every limit asked for was met: a triangle budget (a budget below the coarsest
+    /// mesh cannot be), and with [`Decimation::Both`] also the error bound.
     pub budget_met: bool,
     pub check: MeshCheck,
 }
@@ -102,21 +107,37 @@ pub fn stl_bytes(m: &Mesh) -> Result<Vec<u8>> {
     Ok(out)
 }
 
-/// The (possibly decimated) solid of a tile, the measured height error and whether a budget was met.
+/// The (possibly decimated) solid of a tile, the measured height error and whether every limit
+/// asked for was met.
 pub fn tile_solid(g: &TileGrid, decimate: Option<Decimation>) -> Result<(Mesh, f64, bool)> {
     let relief = g.z.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
         - g.z.iter().cloned().fold(f64::INFINITY, f64::min);
+    let bound = |e: f64| -> Result<(Mesh, f64)> {
+        if !(e.is_finite() && e >= 0.0) {
+            return Err(Error::new(
+                "decimation",
+                format!("the maximum height error must be a number of mm >= 0, got {e}"),
+            ));
+        }
+        let (leaves, err) = leaves_within(g, e);
+        Ok((solid(g, &leaves), err))
+    };
     match decimate {
         None => Ok((solid(g, &full_leaves(g)), 0.0, true)),
         Some(Decimation::MaxErrorMm(e)) => {
-            if !(e.is_finite() && e >= 0.0) {
-                return Err(Error::new(
-                    "decimation",
-                    format!("the maximum height error must be a number of mm >= 0, got {e}"),
-                ));
+            let (m, err) = bound(e)?;
+            Ok((m, err, true))
+        }
+        Some(Decimation::Both {
+            max_error_mm,
+            budget,
+        }) => {
+            let (m, err) = bound(max_error_mm)?;
+            if m.tris.len() <= budget {
+                return Ok((m, err, true));
             }
-            let (leaves, err) = leaves_within(g, e);
-            Ok((solid(g, &leaves), err, true))
+            let (m, err, _) = tile_solid(g, Some(Decimation::TriangleBudget(budget)))?;
+            Ok((m, err, false))
         }
         Some(Decimation::TriangleBudget(n)) => {
             let full = solid(g, &full_leaves(g));

@@ -30,12 +30,25 @@ impl FabPaths {
             profiles: base.join("profiles").join("fabrication"),
         }
     }
-    /// The working directory if it holds `constraints/tools.toml`, else the crate root.
+    /// Each from the working directory if it has it (`constraints/tools.toml`,
+    /// `profiles/fabrication/`), else from the crate root: a shop's own catalogue next to the
+    /// shipped profiles, or its own profiles with the shipped catalogue.
     pub fn default_paths() -> FabPaths {
-        if Path::new("constraints").join("tools.toml").is_file() {
-            FabPaths::new(Path::new("."))
-        } else {
-            FabPaths::new(Path::new(env!("CARGO_MANIFEST_DIR")))
+        let (here, shipped) = (
+            FabPaths::new(Path::new(".")),
+            FabPaths::new(Path::new(env!("CARGO_MANIFEST_DIR"))),
+        );
+        FabPaths {
+            constraints: if here.constraints.join("tools.toml").is_file() {
+                here.constraints
+            } else {
+                shipped.constraints
+            },
+            profiles: if here.profiles.is_dir() {
+                here.profiles
+            } else {
+                shipped.profiles
+            },
         }
     }
     /// Names of the shipped profiles (file stems), sorted.
@@ -113,7 +126,8 @@ macro_rules! merge {
     };
 }
 
-fn is_path(spec: &str) -> bool {
+/// Whether a profile reference is a path (else a shipped profile's name).
+pub fn is_path(spec: &str) -> bool {
     spec.ends_with(".toml") || spec.contains('/') || spec.contains('\\')
 }
 

@@ -219,6 +219,13 @@ pub struct Library {
 impl Library {
     /// Read the manifest and the profile; no array is touched.
     pub fn open(dir: &Path) -> Result<Self> {
+        if !dir.is_dir() {
+            return Err(Error::new(
+                dir.display().to_string(),
+                "no such library directory (build one with `biscale library build --profile P \
+                 --out DIR`, or leave --library out to use the cached build of the profile)",
+            ));
+        }
         let manifest = Manifest::read(dir)?;
         let (profile, _) = profile_of(dir)?;
         if profile.hash() != manifest.profile_hash {

@@ -60,7 +60,7 @@ pub struct GeometryFamily {
     /// Items drawn from this family.
     pub count: usize,
     /// Parameter ranges; integer parameters (`count`, `cells`, `octaves`, `patch`) are rounded.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "crate::tomlfile::exact_len::ranges")]
     pub params: BTreeMap<String, Range2>,
     /// Parameters sampled log-uniformly.
     #[serde(default)]
@@ -109,7 +109,7 @@ pub struct MaterialFamily {
     pub model: String,
     /// Distinct parameter draws (each mixed with every `lambert` albedo).
     pub count: usize,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "crate::tomlfile::exact_len::ranges")]
     pub params: BTreeMap<String, Range2>,
     #[serde(default)]
     pub log: Vec<String>,
@@ -232,14 +232,21 @@ fn absolute_dir(d: &Path, base: &Path, ctx: &str) -> Result<PathBuf> {
         .map_err(|e| Error::io(&joined, "make the path absolute", e).within(ctx))
 }
 
+/// Whether a library profile reference is a path (a `.toml` file or more than one path
+/// component), else a shipped profile's name.
+pub fn is_path(name_or_path: &str) -> bool {
+    let p = Path::new(name_or_path);
+    p.extension().is_some_and(|e| e == "toml") || p.components().count() > 1
+}
+
 impl LibraryProfile {
-    /// Load a profile by shipped name (`tiny`, `default`, `paper`) or by path.
+    /// Load a profile by shipped name (`tiny`, `default`, `paper`) or by path ([`is_path`]).
     /// Relative `texture_dirs` and `merl_dirs` are resolved against the profile file's
     /// directory here, once, so the profile (and the `profile.toml` a build stores) holds
     /// absolute paths.
     pub fn load(name_or_path: &str) -> Result<(Self, PathBuf)> {
         let p = Path::new(name_or_path);
-        let path = if p.extension().is_some_and(|e| e == "toml") || p.components().count() > 1 {
+        let path = if is_path(name_or_path) {
             p.to_path_buf()
         } else {
             find_shipped(name_or_path, &shipped_dirs())?

@@ -16,7 +16,9 @@ pub use merl::MerlBrdf;
 pub use microfacet::{Distribution, Microfacet, Shadowing};
 pub(crate) use spec::round_sig4;
 pub(crate) use spec::Params;
-pub use spec::{param_scaled, parse_material, spec_params, spec_scaled, MATERIAL_GRAMMAR};
+pub use spec::{
+    map_path_terms, param_scaled, parse_material, spec_params, spec_scaled, MATERIAL_GRAMMAR,
+};
 pub use ward::{AnisoWard, Ward};
 
 use crate::frame::Vec3;

@@ -120,6 +120,22 @@ impl<'a> Params<'a> {
         self.take(key)
     }
 
+    /// Error if a key is not one the model accepts (before any is read, so that a misspelt
+    /// key is reported as unknown rather than as a missing required one).
+    pub fn known(&self, accepted: &str) -> Result<()> {
+        match self
+            .pairs
+            .iter()
+            .find(|(k, _)| !accepted.split(", ").any(|a| a == *k))
+        {
+            Some((k, _)) => Err(Error::new(
+                format!("'{}'", self.model),
+                format!("unknown parameter '{k}' (accepted: {accepted})"),
+            )),
+            None => Ok(()),
+        }
+    }
+
     /// Error if keys are left over, listing what the model accepts.
     pub fn finish(self, accepted: &str) -> Result<()> {
         if let Some((k, _)) = self.pairs.first() {
@@ -159,6 +175,22 @@ fn parse_rgb(s: &str) -> Result<[f64; 3]> {
 
 fn looks_like_path(term: &str) -> bool {
     term.ends_with(".binary") || term.contains('/') || term.contains('\\')
+}
+
+/// `spec` with each term that is a file path (a MERL `.binary`) replaced by `f(term)`, the
+/// other terms as they are.
+pub fn map_path_terms(spec: &str, f: impl Fn(&str) -> String) -> String {
+    split_terms(spec)
+        .into_iter()
+        .map(|t| {
+            if looks_like_path(t.trim()) {
+                f(t.trim())
+            } else {
+                t.to_string()
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("+")
 }
 
 /// Keys whose value is a fraction in `[0, 1]`; the other numeric keys are positive scales.
@@ -270,6 +302,7 @@ pub fn parse_material(spec: &str) -> Result<Material> {
         }
         let lobe = match p.model {
             "lambert" => {
+                p.known("albedo, rgb").map_err(ctx)?;
                 let albedo = p.num("albedo", None, 0.0, 1.0, false).map_err(ctx)?;
                 p.finish("albedo, rgb").map_err(ctx)?;
                 Lobe::Lambert(Lambert { albedo })
@@ -278,6 +311,7 @@ pub fn parse_material(spec: &str) -> Result<Material> {
                 if p.pairs.iter().any(|(k, _)| *k == "m") {
                     return Err(ctx(Error::new(format!("'{}'", p.model), "use alpha=..., not m (m is for ct)")));
                 }
+                p.known("alpha, f0, ks, rgb").map_err(ctx)?;
                 let alpha = p.num("alpha", None, 0.0, 10.0, true).map_err(ctx)?;
                 let f0 = p.num("f0", Some(1.0), 0.0, 1.0, false).map_err(ctx)?;
                 let ks = p.num("ks", Some(1.0), 0.0, 1e6, false).map_err(ctx)?;
@@ -286,6 +320,7 @@ pub fn parse_material(spec: &str) -> Result<Material> {
                 Lobe::Microfacet(Microfacet { dist, shadowing: Shadowing::Smith, alpha, f0, ks })
             }
             "ct" | "cooktorrance" => {
+                p.known("m, f0, ks, rgb").map_err(ctx)?;
                 let m = p.num("m", None, 0.0, 10.0, true).map_err(ctx)?;
                 let f0 = p.num("f0", Some(1.0), 0.0, 1.0, false).map_err(ctx)?;
                 let ks = p.num("ks", Some(1.0), 0.0, 1e6, false).map_err(ctx)?;
@@ -306,12 +341,14 @@ pub fn parse_material(spec: &str) -> Result<Material> {
                          (small-scale materials are isotropic): use ward:alpha=...",
                     )));
                 }
+                p.known("alpha, ks, rgb").map_err(ctx)?;
                 let alpha = p.num("alpha", None, 0.0, 10.0, true).map_err(ctx)?;
                 let ks = p.num("ks", Some(1.0), 0.0, 1e6, false).map_err(ctx)?;
                 p.finish("alpha, ks, rgb").map_err(ctx)?;
                 Lobe::Ward(Ward { alpha, ks })
             }
             "blinn" | "phong" => {
+                p.known("n, ks, rgb").map_err(ctx)?;
                 let n = p.num("n", None, 0.0, 1e7, false).map_err(ctx)?;
                 let ks = p.num("ks", Some(1.0), 0.0, 1e6, false).map_err(ctx)?;
                 p.finish("n, ks, rgb").map_err(ctx)?;
@@ -387,6 +424,8 @@ mod tests {
             ("ggx", "missing parameter 'alpha'"),
             ("velvet:x=1", "unknown material model"),
             ("ggx:alpha=0.2,roughness=3", "unknown parameter 'roughness'"),
+            ("ggx:alpah=0.2", "unknown parameter 'alpah'"),
+            ("blinn:m=60", "unknown parameter 'm'"),
             ("ggx:alpha=abc", "is not a number"),
             ("lambert:albedo=1.5", "out of range"),
             ("ward:ax=0.3,ay=0.08", "large-scale target"),

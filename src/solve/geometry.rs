@@ -277,11 +277,12 @@ pub fn solve_with(
     let t1 = Instant::now();
     // A large pool is narrowed by successive coarse passes (each ranks the pool at every
     // `step`-th sample and keeps its best quarter), until at most COARSE_KEEP are left for
-    // every sample.
+    // every sample — or `k` per rotation: the pool holds (geometry, rotation) pairs and the
+    // answers are `k` different geometries, which up to `k × psi` pairs may take.
     let pool = match &data {
         ItemData::Lobes { lobes, pf } => narrow(
             pool,
-            COARSE_KEEP.max(opt.k),
+            COARSE_KEEP.max(opt.k * rots.len()),
             rots[0].samples.pairs.len(),
             |pool, step| {
                 let coarse: Vec<_> = rots

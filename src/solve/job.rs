@@ -54,19 +54,28 @@ pub fn run(job: &SolveJob) -> Result<String> {
             "fix at most one of them (fixing both leaves nothing to solve; use `biscale forward`)",
         ));
     }
+    // What is fixed is read before the library is opened (or built): bad input fails first.
+    let fixed_mat = match &job.fix_material {
+        Some(m) => Some(parse_material(m).map_err(|e| e.within("--fix-material"))?),
+        None => None,
+    };
+    let fixed_hf = match &job.fix_geometry {
+        Some(g) => Some(
+            crate::heightmap_io::resolve_geometry(g, 10.0, 1.0)
+                .map_err(|e| e.within("--fix-geometry"))?,
+        ),
+        None => None,
+    };
     let lib = open_library(&job.library, &job.profile, &job.cache_dir, &progress)?;
-    let (mode, result) = if let Some(m) = &job.fix_material {
-        let mat = parse_material(m).map_err(|e| e.within("--fix-material"))?;
+    let (mode, result) = if let (Some(mat), Some(m)) = (&fixed_mat, &job.fix_material) {
         (
             "geometry solver (material fixed)",
-            super::geometry::solve(&lib, &look, &mat, m, None, &job.options)?,
+            super::geometry::solve(&lib, &look, mat, m, None, &job.options)?,
         )
-    } else if let Some(g) = &job.fix_geometry {
-        let hf = crate::heightmap_io::resolve_geometry(g, 10.0, 1.0)
-            .map_err(|e| e.within("--fix-geometry"))?;
+    } else if let (Some(hf), Some(g)) = (&fixed_hf, &job.fix_geometry) {
         (
             "material solver (geometry fixed)",
-            super::material::solve(&lib, &look, &hf, g, None, 0.0, &job.options)?,
+            super::material::solve(&lib, &look, hf, g, None, 0.0, &job.options)?,
         )
     } else if let Some((n, bound)) = job.veds {
         (
