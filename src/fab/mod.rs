@@ -141,7 +141,7 @@ pub fn check_detail(hf: &Heightfield, profile: &Profile, opts: &CheckOptions) ->
             &mut rej,
             "deviation",
             format!(
-                "made surface deviates up to {:.4} mm, more than {} of the {:.4} mm relief",
+                "at a {patch_mm:.2} mm patch the made surface deviates up to {:.4} mm, more than {} of the {:.4} mm relief",
                 m.max_deviation_mm, profile.max_deviation_frac, m.relief_mm
             ),
         );
@@ -151,7 +151,7 @@ pub fn check_detail(hf: &Heightfield, profile: &Profile, opts: &CheckOptions) ->
             &mut rej,
             "reach",
             format!(
-                "relief {:.3} mm exceeds the {:.3} mm reach",
+                "at a {patch_mm:.2} mm patch the relief, {:.3} mm, exceeds the {:.3} mm reach",
                 m.relief_mm, m.reach_mm
             ),
         );
