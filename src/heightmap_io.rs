@@ -136,17 +136,27 @@ pub fn load_heightmap(path: &Path, patch_size_mm: f64, height_scale: f64) -> Res
     Heightfield::new(cols, rows, z, cell_mm, ctx)
 }
 
-/// Whether a geometry reference names a heightmap file (an existing file, or a name ending in
-/// `.npy` or `.png`) rather than a procedural spec.
+/// Whether a geometry reference names a file (an existing file, or a name ending in `.npy`,
+/// `.png` or `.obj`) rather than a procedural spec.
 pub fn is_heightmap_file(spec: &str) -> bool {
     let lower = spec.trim().to_ascii_lowercase();
-    Path::new(spec).is_file() || lower.ends_with(".npy") || lower.ends_with(".png")
+    Path::new(spec).is_file() || [".npy", ".png", ".obj"].iter().any(|e| lower.ends_with(e))
 }
+
+/// Samples along x of an OBJ resampled to a heightfield (the generators' default resolution).
+pub const OBJ_SAMPLES: usize = 128;
 
 /// A `--geometry` argument: an existing file, or anything ending in `.npy`/`.png`, is loaded with
 /// [`load_heightmap`]; otherwise it is a procedural spec (see [`crate::generators`]) whose grid
 /// heights are multiplied by `height_scale` and whose `cell_mm` is `patch_size_mm / n`.
 pub fn resolve_geometry(spec: &str, patch_size_mm: f64, height_scale: f64) -> Result<Heightfield> {
+    if spec.trim().to_ascii_lowercase().ends_with(".obj") {
+        // One period in mm with its own size (`patch_size_mm` does not apply), resampled.
+        check_scales(spec, patch_size_mm, height_scale)?;
+        let hf = crate::fab::import_obj(Path::new(spec), OBJ_SAMPLES)?;
+        let z: Vec<f64> = hf.samples().iter().map(|v| v * height_scale).collect();
+        return Heightfield::new(hf.width(), hf.height(), z, hf.cell_mm, hf.name.clone());
+    }
     if is_heightmap_file(spec) {
         return load_heightmap(Path::new(spec), patch_size_mm, height_scale);
     }

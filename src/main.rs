@@ -92,7 +92,8 @@ enum Cmd {
     /// Large-scale fbar of one small-scale geometry and material at given direction pairs.
     #[command(after_help = forward_help(), allow_negative_numbers = true)]
     Forward {
-        /// Heightmap file (.npy H×W of floats or integers, 8/16-bit grey .png) or a procedural spec
+        /// Heightmap file (.npy H×W of floats or integers, 8/16-bit grey .png, or an .obj of one
+        /// period in mm, resampled to 128 samples along x) or a procedural spec
         /// such as 'vgroove:period=16,depth=4' (see below).
         #[arg(long, short = 'g', default_value = "bumps")]
         geometry: String,

@@ -729,6 +729,14 @@ fn obj_heightfields_import_and_overhangs_are_rejected() {
             assert!((back.at(x, y) - (hf.at(x, y) - lo)).abs() < 1e-9);
         }
     }
+    // As a `--geometry` / `fixed_geometry` file: resampled to 128 samples along x, the period
+    // (4 mm) from the file, heights times the height scale.
+    let g = biscale::heightmap_io::resolve_geometry(f.to_str().unwrap(), 10.0, 2.0).unwrap();
+    assert_eq!((g.width(), g.height()), (128, 128));
+    assert!((g.cell_mm * 128.0 - 4.0).abs() < 1e-12, "{}", g.cell_mm);
+    let (glo, ghi) = g.min_max();
+    let (a, b) = back.min_max();
+    assert!(((ghi - glo) * g.cell_mm - 2.0 * (b - a) * back.cell_mm).abs() < 1e-9);
     // a downward face (a slab under the surface) and a second sheet above it
     let n = 17 * 17;
     let f = d.join("down.obj");

@@ -184,9 +184,14 @@ fn rejected_line(s: &Summary) -> String {
     }
     let reasons: Vec<String> = s.rejected.iter().map(|(k, n)| format!("{k} {n}")).collect();
     format!(
-        "{} candidates checked, {} geometries rejected (by reason, a geometry may fail several: {})",
+        "{} candidates checked, {} {} rejected (by reason, a geometry may fail several: {})",
         s.candidates_checked,
         s.candidates_rejected,
+        if s.candidates_rejected == 1 {
+            "geometry"
+        } else {
+            "geometries"
+        },
         reasons.join(", ")
     )
 }

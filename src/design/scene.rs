@@ -249,8 +249,18 @@ impl Scene {
             {
                 return Err(Error::new(
                     k,
-                    "applies to a heightmap file given as `fixed_geometry` (.npy or .png); \
+                    "applies to a heightmap file given as `fixed_geometry` (.npy, .png or .obj); \
                      procedural geometries set their heights in their spec",
+                ));
+            }
+            let obj = self
+                .fixed_geometry
+                .as_deref()
+                .is_some_and(|g| g.trim().to_ascii_lowercase().ends_with(".obj"));
+            if obj && k == "heightmap_patch_mm" {
+                return Err(Error::new(
+                    k,
+                    "an .obj carries its own size (its x-y bounding rectangle is the period)",
                 ));
             }
         }
