@@ -22,6 +22,7 @@ use crate::heightfield::Heightfield;
 use crate::library::progress::Progress;
 use crate::material::{parse_material, Material};
 use crate::prefilter::Prefiltered;
+use crate::solve::job::Fixed;
 use crate::solve::look::Edits;
 use crate::solve::{fast_values, Candidate, Final, Look, SolveOptions};
 use scene::Scene;
@@ -156,20 +157,20 @@ pub fn run(job: &DesignJob) -> Result<String> {
     };
     let look =
         Look::from_spec(&scene.target, edits, scene.colour).map_err(|e| e.within(ctx("target")))?;
-    let fixed_mat = match &scene.fixed_material {
-        Some(m) => Some(parse_material(m).map_err(|e| e.within(ctx("fixed_material")))?),
-        None => None,
-    };
-    let fixed_hf = match &scene.fixed_geometry {
-        Some(g) => Some(
-            crate::heightmap_io::resolve_geometry(
+    let fixed = Fixed::read(
+        scene.fixed_material.as_deref(),
+        scene.fixed_geometry.as_deref().map(|g| {
+            (
                 g,
                 scene.heightmap_patch_mm.unwrap_or(10.0),
                 scene.heightmap_height_scale.unwrap_or(1.0),
             )
-            .map_err(|e| e.within(ctx("fixed_geometry")))?,
-        ),
-        None => None,
+        }),
+        (&ctx("fixed_material"), &ctx("fixed_geometry")),
+    )?;
+    let fixed_hf = match &fixed {
+        Fixed::Geometry(hf, _) => Some(hf.clone()),
+        _ => None,
     };
     let out_dir = job.outputs.join(&scene.name);
     if out_dir.exists() && !job.force {
@@ -212,20 +213,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
         seed: scene.seed,
         ..Default::default()
     };
-    let (mode, result) = if let (Some(mat), Some(m)) = (&fixed_mat, &scene.fixed_material) {
-        (
-            "geometry solver (material fixed)",
-            crate::solve::geometry::solve(&lib, &look, mat, m, None, &opt)?,
-        )
-    } else if let (Some(hf), Some(g)) = (&fixed_hf, &scene.fixed_geometry) {
-        let r = crate::solve::material::solve(&lib, &look, hf, g, None, 0.0, &opt)?;
-        ("material solver (geometry fixed)", r)
-    } else {
-        (
-            "general solver",
-            crate::solve::general::solve(&lib, &look, &opt, &general)?,
-        )
-    };
+    let (mode, result) = fixed.solve(&lib, &look, &opt, &general)?;
     note(
         format!(
             "{mode}: {} candidates in {:.1} s; library {} read: {}",

@@ -31,6 +31,69 @@ pub struct SolveJob {
     pub quiet: bool,
 }
 
+/// What a run fixes, read (and checked) before any library is opened: a material, a geometry,
+/// or neither. `biscale solve` and `biscale design` both read it here and solve with it.
+pub enum Fixed {
+    /// The material and its spec: the geometry solver.
+    Material(crate::material::Material, String),
+    /// The geometry (a heightmap or OBJ file, or a procedural spec) and its spec: the material
+    /// solver.
+    Geometry(crate::heightfield::Heightfield, String),
+    /// Neither: the general solver.
+    Neither,
+}
+
+impl Fixed {
+    /// Read a material spec or a geometry spec (with a heightmap's patch size and height
+    /// scale); errors are placed within `labels.0` / `labels.1`.
+    pub fn read(
+        material: Option<&str>,
+        geometry: Option<(&str, f64, f64)>,
+        labels: (&str, &str),
+    ) -> Result<Fixed> {
+        match (material, geometry) {
+            (Some(_), Some(_)) => Err(Error::new(
+                format!("{} / {}", labels.0, labels.1),
+                "fix at most one of them (fixing both leaves nothing to solve; use `biscale forward`)",
+            )),
+            (Some(m), None) => Ok(Fixed::Material(
+                parse_material(m).map_err(|e| e.within(labels.0))?,
+                m.to_string(),
+            )),
+            (None, Some((g, patch_mm, height_scale))) => Ok(Fixed::Geometry(
+                crate::heightmap_io::resolve_geometry(g, patch_mm, height_scale)
+                    .map_err(|e| e.within(labels.1))?,
+                g.to_string(),
+            )),
+            (None, None) => Ok(Fixed::Neither),
+        }
+    }
+
+    /// Run the solver this calls for; returns its name and its result.
+    pub fn solve(
+        &self,
+        lib: &Library,
+        look: &Look,
+        opt: &SolveOptions,
+        general: &GeneralOptions,
+    ) -> Result<(&'static str, SolveResult)> {
+        Ok(match self {
+            Fixed::Material(mat, m) => (
+                "geometry solver (material fixed)",
+                super::geometry::solve(lib, look, mat, m, None, opt)?,
+            ),
+            Fixed::Geometry(hf, g) => (
+                "material solver (geometry fixed)",
+                super::material::solve(lib, look, hf, g, None, 0.0, opt)?,
+            ),
+            Fixed::Neither => (
+                "general solver",
+                super::general::solve(lib, look, opt, general)?,
+            ),
+        })
+    }
+}
+
 /// Open the library a job names: a directory, or the cached build of a profile.
 pub fn open_library(
     library: &Option<PathBuf>,
@@ -48,45 +111,19 @@ pub fn run(job: &SolveJob) -> Result<String> {
     let progress = Progress { quiet: job.quiet };
     let look =
         Look::from_spec(&job.target, job.edits, job.colour).map_err(|e| e.within("--target"))?;
-    if job.fix_material.is_some() && job.fix_geometry.is_some() {
-        return Err(Error::new(
-            "--fix-material / --fix-geometry",
-            "fix at most one of them (fixing both leaves nothing to solve; use `biscale forward`)",
-        ));
-    }
     // What is fixed is read before the library is opened (or built): bad input fails first.
-    let fixed_mat = match &job.fix_material {
-        Some(m) => Some(parse_material(m).map_err(|e| e.within("--fix-material"))?),
-        None => None,
-    };
-    let fixed_hf = match &job.fix_geometry {
-        Some(g) => Some(
-            crate::heightmap_io::resolve_geometry(g, 10.0, 1.0)
-                .map_err(|e| e.within("--fix-geometry"))?,
-        ),
-        None => None,
-    };
+    let fixed = Fixed::read(
+        job.fix_material.as_deref(),
+        job.fix_geometry.as_deref().map(|g| (g, 10.0, 1.0)),
+        ("--fix-material", "--fix-geometry"),
+    )?;
     let lib = open_library(&job.library, &job.profile, &job.cache_dir, &progress)?;
-    let (mode, result) = if let (Some(mat), Some(m)) = (&fixed_mat, &job.fix_material) {
-        (
-            "geometry solver (material fixed)",
-            super::geometry::solve(&lib, &look, mat, m, None, &job.options)?,
-        )
-    } else if let (Some(hf), Some(g)) = (&fixed_hf, &job.fix_geometry) {
-        (
-            "material solver (geometry fixed)",
-            super::material::solve(&lib, &look, hf, g, None, 0.0, &job.options)?,
-        )
-    } else if let Some((n, bound)) = job.veds {
-        (
+    let (mode, result) = match (&fixed, job.veds) {
+        (Fixed::Neither, Some((n, bound))) => (
             "visually equivalent details",
             super::veds::solve(&lib, &look, &job.options, &job.general, n, bound, 0.98)?,
-        )
-    } else {
-        (
-            "general solver",
-            super::general::solve(&lib, &look, &job.options, &job.general)?,
-        )
+        ),
+        _ => fixed.solve(&lib, &look, &job.options, &job.general)?,
     };
     progress.note(&format!(
         "solve: {mode}; library {} ('{}'); read: {}",
