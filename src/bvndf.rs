@@ -343,6 +343,9 @@ impl CompactBvndf {
                 // Column b only needs nodes a <= b, none more grazing than b's own polar node,
                 // so horizons below that node's slope need not be resolved (shorter marches).
                 let floor_b = cots[b / np].min(f64::MAX).max(floor);
+                // Only the polar node a horizon falls between matters: the march resolves it
+                // against the polar nodes' slopes from b's own up to the first ring's.
+                let levels: Vec<f64> = cots[1..=(b / np).max(1)].iter().rev().copied().collect();
                 let mut seen_small = vec![[0.0f64; STRIDE]; kc];
                 let dir = vis.direction(wb);
                 for &(u, v) in &origins {
@@ -361,7 +364,11 @@ impl CompactBvndf {
                         }
                     }
                     for (jj, az) in azimuths.iter().enumerate() {
-                        let h = vis.horizon_along(p.x, p.y, p.z, az, floor_b, stop);
+                        let h = if b < np {
+                            vis.horizon_along(p.x, p.y, p.z, az, floor_b, stop)
+                        } else {
+                            vis.horizon_level(p.x, p.y, p.z, az, &levels)
+                        };
                         t[jj] = cots.iter().take_while(|&&ct| ct >= h).count();
                     }
                     let m = moments(n);

@@ -192,7 +192,7 @@ impl Heightfield {
 
     /// Height of the triangulated surface at any `(x, y)` in grid units (periodic).
     pub fn surface_height(&self, x: f64, y: f64) -> f64 {
-        let (cx, cy) = (x.floor(), y.floor());
+        let (cx, cy) = (crate::fastmath::floor(x), crate::fastmath::floor(y));
         let (fx, fy) = (x - cx, y - cy);
         let (ix, iy) = (cx as i64, cy as i64);
         let z00 = self.at(ix, iy);

@@ -21,6 +21,7 @@
 //! prepared once per direction (`*_along`, `*_dir`); wrapping uses masks when the grid and
 //! block counts are powers of two.
 
+use crate::fastmath::floor;
 use crate::frame::Vec3;
 use crate::heightfield::Heightfield;
 
@@ -217,12 +218,30 @@ impl<'a> Visibility<'a> {
         floor: f64,
         stop_above: f64,
     ) -> f64 {
-        self.march(px, py, pz, az, floor, stop_above).0
+        self.march(px, py, pz, az, floor, stop_above, &[]).0
+    }
+
+    /// The horizon slope of `(px, py, pz)` along `az` resolved only against `levels` (ascending
+    /// slopes, at least one): returns the smallest level at or above the horizon slope `H`, or a
+    /// value above the last level when `H` is above it. Counting the levels at or above the result
+    /// counts those at or above `H`, which is all the compact BVNDF needs of a horizon (which
+    /// polar nodes of the azimuth see the point), and the march ends sooner: once a breakpoint
+    /// beats the best level so far, the best jumps to the next level up, so nothing nearer than
+    /// `headroom / level` needs walking.
+    pub fn horizon_level(&self, px: f64, py: f64, pz: f64, az: &Azimuth, levels: &[f64]) -> f64 {
+        let (lo, hi) = match (levels.first(), levels.last()) {
+            (Some(&lo), Some(&hi)) => (lo, hi),
+            _ => return self.horizon_along(px, py, pz, az, 0.0, f64::INFINITY),
+        };
+        self.march(px, py, pz, az, lo, hi, levels).0
     }
 
     /// The march of [`Visibility::horizon_along`]: the best slope, and whether the march
     /// stopped because a breakpoint rose above `stop_above` by more than the height tolerance
-    /// (`(h - p_z - htol) / s > stop_above`, the test of [`Visibility::visible_dir`]).
+    /// (`(h - p_z - htol) / s > stop_above`, the test of [`Visibility::visible_dir`]). With
+    /// `levels` (ascending), a new best slope is raised to the next level at or above it
+    /// ([`Visibility::horizon_level`]).
+    #[allow(clippy::too_many_arguments)]
     fn march(
         &self,
         px: f64,
@@ -231,7 +250,9 @@ impl<'a> Visibility<'a> {
         az: &Azimuth,
         floor: f64,
         stop_above: f64,
+        levels: &[f64],
     ) -> (f64, bool) {
+        let snap = |b: f64| levels.iter().copied().find(|&l| l >= b).unwrap_or(b);
         let mut best = floor.max(MIN_SLOPE);
         let headroom = self.zmax - pz;
         // On a line that repeats after `period`, later copies of a point are farther away, so
@@ -260,25 +281,29 @@ impl<'a> Visibility<'a> {
             let s_exit = walk.s_exit();
             if let Some(sd) = walk.diagonal_crossing() {
                 if sd > MIN_RUN {
-                    let slope = (walk.height_at(sd, &c) - pz) / sd;
-                    if slope > best {
-                        best = slope;
+                    // Slopes are compared as rises (`rise > best s`), dividing only when a
+                    // breakpoint beats the best: most breakpoints do not.
+                    let rise = walk.height_at(sd, &c) - pz;
+                    if rise > best * sd {
+                        best = rise / sd;
                         if best > stop_above + self.htol / sd {
                             return (best, true);
                         }
+                        best = snap(best);
                     }
                 }
             }
             if s_exit > MIN_RUN {
-                let slope = (walk.height_at(s_exit, &c) - pz) / s_exit;
-                if slope > best {
-                    best = slope;
+                let rise = walk.height_at(s_exit, &c) - pz;
+                if rise > best * s_exit {
+                    best = rise / s_exit;
                     if best > stop_above + self.htol / s_exit {
                         return (best, true);
                     }
+                    best = snap(best);
                 }
                 // Nothing farther can rise above the best slope so far.
-                if headroom / s_exit <= best || s_exit > period {
+                if headroom <= best * s_exit || s_exit > period {
                     return (best, false);
                 }
             }
@@ -429,7 +454,7 @@ impl<'a> Visibility<'a> {
 
     /// Index of the facet containing base point `(x, y)`.
     fn facet_at(&self, x: f64, y: f64) -> usize {
-        let (cx, cy) = (x.floor(), y.floor());
+        let (cx, cy) = (floor(x), floor(y));
         let ix = (cx as i64).rem_euclid(self.w) as usize;
         let iy = (cy as i64).rem_euclid(self.h) as usize;
         2 * (iy * self.w as usize + ix) + if x - cx >= y - cy { 0 } else { 1 }
@@ -474,7 +499,7 @@ impl<'a> Visibility<'a> {
         match &dir.along {
             // Straight up: nothing on a heightfield is above the zenith ray.
             None => dir.w.z > 0.0,
-            Some(al) => !self.march(px, py, pz, &al.fwd, al.m, al.m).1,
+            Some(al) => !self.march(px, py, pz, &al.fwd, al.m, al.m, &[]).1,
         }
     }
 }
@@ -555,8 +580,8 @@ impl CellWalk {
 
     /// Put the walk in the cell containing the point at distance `probe`, entered at `s_in`.
     fn enter(&mut self, probe: f64, s_in: f64) {
-        self.cx = (self.px + probe * self.dx).floor();
-        self.cy = (self.py + probe * self.dy).floor();
+        self.cx = floor(self.px + probe * self.dx);
+        self.cy = floor(self.py + probe * self.dy);
         self.ix = wrap(self.cx as i64, self.w, self.wmask);
         self.iy = wrap(self.cy as i64, self.h, self.hmask);
         let next = |c: f64, p: f64, d: f64, step: f64| {
@@ -649,18 +674,19 @@ impl CellWalk {
         ((self.cx as i64) >> shift, (self.cy as i64) >> shift)
     }
 
-    /// Distance at which the walk leaves block `(bx, by)` of side `bs`.
+    /// Distance at which the walk leaves block `(bx, by)` of side `bs` (multiplied by the
+    /// prepared `1 / |d|` rather than divided: a march skips more blocks than it walks cells).
     fn block_exit(&self, bs: i64, (bx, by): (i64, i64)) -> f64 {
-        let edge = |p: f64, d: f64, b: i64| {
+        let edge = |p: f64, d: f64, step: f64, b: i64| {
             if d > 0.0 {
-                (((b + 1) * bs) as f64 - p) / d
+                (((b + 1) * bs) as f64 - p) * step
             } else if d < 0.0 {
-                ((b * bs) as f64 - p) / d
+                (p - (b * bs) as f64) * step
             } else {
                 f64::INFINITY
             }
         };
-        edge(self.px, self.dx, bx).min(edge(self.py, self.dy, by))
+        edge(self.px, self.dx, self.step_x, bx).min(edge(self.py, self.dy, self.step_y, by))
     }
 }
 
@@ -796,13 +822,33 @@ mod tests {
     #[test]
     fn first_hit_is_on_the_surface_visible_and_first() {
         let mut r = crate::rng::Rng::new(9);
-        for &n in &[16usize, 13] {
-            let z: Vec<f64> = (0..n * n).map(|_| r.range(0.0, 3.0)).collect();
+        for &n in &[16usize, 13, 32] {
+            // Random heights, and for n = 32 sparse spikes over flat ground (blocks to skip).
+            let z: Vec<f64> = (0..n * n)
+                .map(|_| {
+                    if n == 32 {
+                        if r.range(0.0, 1.0) < 0.03 {
+                            r.range(0.0, 3.0)
+                        } else {
+                            0.0
+                        }
+                    } else {
+                        r.range(0.0, 3.0)
+                    }
+                })
+                .collect();
             let hf = Heightfield::new(n, n, z, 1.0, "rand").unwrap();
             let v = Visibility::new(&hf);
             let facets = hf.facets();
-            for _ in 0..400 {
-                let w = crate::frame::dir_from_deg(r.range(0.0, 88.0), r.range(0.0, 360.0));
+            for i in 0..800 {
+                // Half the views along the axes and diagonals, whose lines repeat (the walk
+                // jumps whole periods there), some at grazing angles over flat ground.
+                let phi = if i % 2 == 0 {
+                    45.0 * (i / 2 % 8) as f64
+                } else {
+                    r.range(0.0, 360.0)
+                };
+                let w = crate::frame::dir_from_deg(r.range(0.0, 88.5), phi);
                 let (u, vv) = (r.range(0.0, n as f64), r.range(0.0, n as f64));
                 let (p, f) = v.first_hit(u, vv, w);
                 // on the surface, on its facet's plane
