@@ -666,18 +666,24 @@ impl Generator {
             }
             "texture" => {
                 let file = self.text("file");
-                let img = if file.is_empty() {
-                    crate::texture::builtin_image(self.text("tex"), self.seed())?
-                } else {
-                    crate::texture::load_grey(Path::new(file))?
-                };
-                crate::texture::patch_heights_sized(
-                    &img,
+                let (patch, amplitude, cutoff) = (
                     self.num("patch") as usize,
                     self.num("amplitude"),
                     self.num("cutoff"),
-                    n,
-                )
+                );
+                if file.is_empty() {
+                    crate::texture::builtin_patch_heights(
+                        self.text("tex"),
+                        self.seed(),
+                        patch,
+                        amplitude,
+                        cutoff,
+                        n,
+                    )
+                } else {
+                    let img = crate::texture::load_grey(Path::new(file))?;
+                    crate::texture::patch_heights_sized(&img, patch, amplitude, cutoff, n)
+                }
                 .map_err(|e| e.within(&name))?
             }
             other => {
@@ -947,7 +953,61 @@ pub(crate) fn fbm_field(
     lacunarity: f64,
     seed: u64,
 ) -> Vec<f64> {
-    let mut z = vec![0.0; n * n];
+    fbm_window(
+        n,
+        cells,
+        octaves,
+        persistence,
+        lacunarity,
+        seed,
+        Window::full(n),
+    )
+}
+
+/// A rectangle of samples `x0..x0 + w` × `y0..y0 + h` of an `n × n` field.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Window {
+    pub x0: usize,
+    pub y0: usize,
+    pub w: usize,
+    pub h: usize,
+}
+
+impl Window {
+    pub(crate) fn full(n: usize) -> Self {
+        Window {
+            x0: 0,
+            y0: 0,
+            w: n,
+            h: n,
+        }
+    }
+
+    /// The field coordinates `(x, y)` of the window's samples, row-major.
+    pub(crate) fn samples(self) -> impl Iterator<Item = (usize, usize)> {
+        (self.y0..self.y0 + self.h)
+            .flat_map(move |y| (self.x0..self.x0 + self.w).map(move |x| (x, y)))
+    }
+
+    /// Index in the window of field sample `(x, y)`, if inside.
+    pub(crate) fn index(self, x: usize, y: usize) -> Option<usize> {
+        (x >= self.x0 && x < self.x0 + self.w && y >= self.y0 && y < self.y0 + self.h)
+            .then(|| (y - self.y0) * self.w + (x - self.x0))
+    }
+}
+
+/// The samples of [`fbm_field`] inside `win`, each computed exactly as the whole field computes
+/// it (a texture patch reads a sixteenth of its image).
+pub(crate) fn fbm_window(
+    n: usize,
+    cells: usize,
+    octaves: usize,
+    persistence: f64,
+    lacunarity: f64,
+    seed: u64,
+    win: Window,
+) -> Vec<f64> {
+    let mut z = vec![0.0; win.w * win.h];
     let mut amp = 1.0;
     for o in 0..octaves {
         let per = (cells as f64 * lacunarity.powi(o as i32)).round() as usize;
@@ -956,14 +1016,12 @@ pub(crate) fn fbm_field(
         }
         let mut rng = Rng::stream(seed, o as u64);
         let noise = PeriodicNoise::new(per, &mut rng);
-        let coord: Vec<(usize, f64)> = (0..n)
-            .map(|x| ((x * per) / n, ((x * per) % n) as f64 / n as f64))
-            .collect();
-        for y in 0..n {
-            let (iy, fy) = coord[y];
-            for x in 0..n {
-                let (ix, fx) = coord[x];
-                z[y * n + x] += amp * noise.eval_split(ix, fx, iy, fy);
+        let coord = |x: usize| ((x * per) / n, ((x * per) % n) as f64 / n as f64);
+        let xs: Vec<(usize, f64)> = (win.x0..win.x0 + win.w).map(coord).collect();
+        for (row, y) in z.chunks_mut(win.w.max(1)).zip(win.y0..) {
+            let (iy, fy) = coord(y);
+            for (zi, &(ix, fx)) in row.iter_mut().zip(&xs) {
+                *zi += amp * noise.eval_split(ix, fx, iy, fy);
             }
         }
         amp *= persistence;

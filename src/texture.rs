@@ -20,7 +20,7 @@
 //! downloaded.
 
 use crate::error::{Error, Result};
-use crate::generators::{fbm_field, PeriodicNoise};
+use crate::generators::{fbm_window, PeriodicNoise, Window};
 use crate::rng::Rng;
 use rustfft::num_complex::Complex;
 use rustfft::FftPlanner;
@@ -120,29 +120,53 @@ fn weights(src: usize, dst: usize) -> Vec<Vec<(usize, f64)>> {
 pub fn resample_square(img: &GreyImage, size: usize) -> GreyImage {
     let side = img.w.min(img.h);
     let (x0, y0) = ((img.w - side) / 2, (img.h - side) / 2);
-    let wx = weights(side, size);
-    // Horizontal pass: side rows × size columns.
-    let mut tmp = vec![0.0; side * size];
-    for y in 0..side {
-        let row = &img.data[(y0 + y) * img.w + x0..(y0 + y) * img.w + x0 + side];
-        for (x, ws) in wx.iter().enumerate() {
-            tmp[y * size + x] = ws.iter().map(|&(i, w)| w * row[i]).sum();
+    GreyImage {
+        w: size,
+        h: size,
+        data: resample_block(side, size, (0, 0), size, |x, y| {
+            img.data[(y0 + y) * img.w + x0 + x]
+        }),
+    }
+}
+
+/// Source indices (first, last) that the destination indices `weights[d0..d0 + m]` read.
+fn source_span(weights: &[Vec<(usize, f64)>]) -> (usize, usize) {
+    let mut idx = weights.iter().flatten().map(|&(i, _)| i);
+    let first = idx.next().unwrap_or(0);
+    idx.fold((first, first), |(lo, hi), i| (lo.min(i), hi.max(i)))
+}
+
+/// The `m × m` block at destination `(dx0, dy0)` of the `size × size` resampling of a square
+/// source of side `side` whose pixel `(x, y)` is `src(x, y)`: only the source rows and columns
+/// the block reads are read, and every destination value is computed as the whole resampling
+/// computes it (a horizontal pass, then a vertical one).
+fn resample_block(
+    side: usize,
+    size: usize,
+    (dx0, dy0): (usize, usize),
+    m: usize,
+    src: impl Fn(usize, usize) -> f64,
+) -> Vec<f64> {
+    let wts = weights(side, size);
+    let (cols, rows) = (&wts[dx0..dx0 + m], &wts[dy0..dy0 + m]);
+    let (ylo, yhi) = source_span(rows);
+    // Horizontal pass over the source rows the block reads: those rows × m columns.
+    let mut tmp = vec![0.0; (yhi + 1 - ylo) * m];
+    for (ys, row) in (ylo..=yhi).zip(tmp.chunks_mut(m)) {
+        for (t, ws) in row.iter_mut().zip(cols) {
+            *t = ws.iter().map(|&(i, w)| w * src(i, ys)).sum();
         }
     }
-    let mut data = vec![0.0; size * size];
-    for (y, ws) in wx.iter().enumerate() {
+    let mut data = vec![0.0; m * m];
+    for (y, ws) in rows.iter().enumerate() {
         for &(i, w) in ws {
-            let src = &tmp[i * size..(i + 1) * size];
-            for (d, s) in data[y * size..(y + 1) * size].iter_mut().zip(src) {
+            let s = &tmp[(i - ylo) * m..(i - ylo + 1) * m];
+            for (d, s) in data[y * m..(y + 1) * m].iter_mut().zip(s) {
                 *d += w * s;
             }
         }
     }
-    GreyImage {
-        w: size,
-        h: size,
-        data,
-    }
+    data
 }
 
 /// In-place 2-D FFT of an `n × n` row-major array (rows, then columns via a transpose).
@@ -248,6 +272,7 @@ pub fn patch_heights(
 }
 
 /// The recipe for an `m × m` patch cut from a `4m × 4m` resampling (`m = 128` is the paper's).
+/// Only the part of the resampling the patch covers is computed.
 pub fn patch_heights_sized(
     img: &GreyImage,
     patch: usize,
@@ -255,10 +280,9 @@ pub fn patch_heights_sized(
     cutoff_cycles: f64,
     m: usize,
 ) -> Result<Vec<f64>> {
-    let ctx = "texture patch";
     if img.w == 0 || img.h == 0 || img.data.len() != img.w * img.h {
         return Err(Error::new(
-            ctx,
+            "texture patch",
             format!(
                 "image of {}×{} with {} samples (expected a non-empty image)",
                 img.w,
@@ -267,6 +291,61 @@ pub fn patch_heights_sized(
             ),
         ));
     }
+    check_patch(patch, amplitude, cutoff_cycles, m)?;
+    let side = img.w.min(img.h);
+    let (x0, y0) = ((img.w - side) / 2, (img.h - side) / 2);
+    let cut = resample_block(side, 4 * m, patch_origin(patch, m), m, |x, y| {
+        img.data[(y0 + y) * img.w + x0 + x]
+    });
+    Ok(recipe_tail(&cut, m, amplitude, cutoff_cycles))
+}
+
+/// The recipe on built-in texture `name` (seed `seed`): only the pixels of the `512 × 512`
+/// image that the patch's resampling reads are made (about a sixteenth of them), and without
+/// the image's normalisation to `[0, 1]` ([`builtin_image`]), which the result does not see:
+/// the high-pass is linear and removes the mean, and the equalisation keeps only ranks. A
+/// library of 40,000 texture patches made whole images for every one of them.
+pub fn builtin_patch_heights(
+    name: &str,
+    seed: u64,
+    patch: usize,
+    amplitude: f64,
+    cutoff_cycles: f64,
+    m: usize,
+) -> Result<Vec<f64>> {
+    check_patch(patch, amplitude, cutoff_cycles, m)?;
+    let size = 4 * m;
+    let (dx0, dy0) = patch_origin(patch, m);
+    let wts = weights(IMAGE, size);
+    let (xlo, xhi) = source_span(&wts[dx0..dx0 + m]);
+    let (ylo, yhi) = source_span(&wts[dy0..dy0 + m]);
+    let win = Window {
+        x0: xlo,
+        y0: ylo,
+        w: xhi + 1 - xlo,
+        h: yhi + 1 - ylo,
+    };
+    let src = builtin_window(name, seed, win)?;
+    let cut = resample_block(IMAGE, size, (dx0, dy0), m, |x, y| {
+        src[(y - ylo) * win.w + (x - xlo)]
+    });
+    Ok(recipe_tail(&cut, m, amplitude, cutoff_cycles))
+}
+
+/// Top-left corner, in the `4m × 4m` resampling, of patch `patch` (row `patch / 4`, column
+/// `patch % 4`).
+fn patch_origin(patch: usize, m: usize) -> (usize, usize) {
+    ((patch % 4) * m, (patch / 4) * m)
+}
+
+/// Steps 4–6 of the recipe on a cut `m × m` patch.
+fn recipe_tail(cut: &[f64], m: usize, amplitude: f64, cutoff_cycles: f64) -> Vec<f64> {
+    let hp = highpass(cut, m, cutoff_cycles);
+    equalise(&hp).into_iter().map(|v| v * amplitude).collect()
+}
+
+fn check_patch(patch: usize, amplitude: f64, cutoff_cycles: f64, m: usize) -> Result<()> {
+    let ctx = "texture patch";
     if patch >= 16 {
         return Err(Error::new(
             ctx,
@@ -291,15 +370,7 @@ pub fn patch_heights_sized(
             format!("patch side {m} (expected 2 to 1024 samples)"),
         ));
     }
-    let big = resample_square(img, 4 * m);
-    let (py, px) = (patch / 4, patch % 4);
-    let mut cut = Vec::with_capacity(m * m);
-    for y in 0..m {
-        let start = (py * m + y) * big.w + px * m;
-        cut.extend_from_slice(&big.data[start..start + m]);
-    }
-    let hp = highpass(&cut, m, cutoff_cycles);
-    Ok(equalise(&hp).into_iter().map(|v| v * amplitude).collect())
+    Ok(())
 }
 
 fn normalise(mut v: Vec<f64>) -> Vec<f64> {
@@ -313,125 +384,137 @@ fn normalise(mut v: Vec<f64>) -> Vec<f64> {
     v
 }
 
-/// Periodic Voronoi on a `g × g` jittered grid over the unit square: per sample (F1, F2, cell id),
-/// distances in cell units.
+/// Periodic Voronoi (Worley) distances of the `n × n` image's pixels in `win`: nearest and
+/// second-nearest feature distance and the nearest feature's index, with one random feature per
+/// cell of a `g × g` lattice (all drawn from `rng`, whatever the window), optionally warped by
+/// `warp = (wx, wy, strength)` given over the window.
 fn voronoi(
     n: usize,
     g: usize,
     rng: &mut Rng,
     warp: Option<(&[f64], &[f64], f64)>,
+    win: Window,
 ) -> Vec<(f64, f64, usize)> {
     let pts: Vec<(f64, f64)> = (0..g * g).map(|_| (rng.uniform(), rng.uniform())).collect();
     let gi = g as i64;
-    let mut out = Vec::with_capacity(n * n);
-    for y in 0..n {
-        for x in 0..n {
-            let (mut u, mut v) = (
-                (x as f64 + 0.5) / n as f64 * g as f64,
-                (y as f64 + 0.5) / n as f64 * g as f64,
-            );
-            if let Some((wx, wy, s)) = warp {
-                u += s * wx[y * n + x];
-                v += s * wy[y * n + x];
-            }
-            let (cu, cv) = (u.floor() as i64, v.floor() as i64);
-            let (mut f1, mut f2, mut id) = (f64::INFINITY, f64::INFINITY, 0);
-            for dj in -1..=1 {
-                for di in -1..=1 {
-                    let (ci, cj) = (cu + di, cv + dj);
-                    let k = (cj.rem_euclid(gi) * gi + ci.rem_euclid(gi)) as usize;
-                    let (px, py) = (ci as f64 + pts[k].0, cj as f64 + pts[k].1);
-                    let d = ((px - u).powi(2) + (py - v).powi(2)).sqrt();
-                    if d < f1 {
-                        f2 = f1;
-                        f1 = d;
-                        id = k;
-                    } else if d < f2 {
-                        f2 = d;
-                    }
+    let mut out = Vec::with_capacity(win.w * win.h);
+    for (k, (x, y)) in win.samples().enumerate() {
+        let (mut u, mut v) = (
+            (x as f64 + 0.5) / n as f64 * g as f64,
+            (y as f64 + 0.5) / n as f64 * g as f64,
+        );
+        if let Some((wx, wy, s)) = warp {
+            u += s * wx[k];
+            v += s * wy[k];
+        }
+        let (cu, cv) = (u.floor() as i64, v.floor() as i64);
+        let (mut f1, mut f2, mut id) = (f64::INFINITY, f64::INFINITY, 0);
+        for dj in -1..=1 {
+            for di in -1..=1 {
+                let (ci, cj) = (cu + di, cv + dj);
+                let k = (cj.rem_euclid(gi) * gi + ci.rem_euclid(gi)) as usize;
+                let (px, py) = (ci as f64 + pts[k].0, cj as f64 + pts[k].1);
+                let d = ((px - u).powi(2) + (py - v).powi(2)).sqrt();
+                if d < f1 {
+                    f2 = f1;
+                    f1 = d;
+                    id = k;
+                } else if d < f2 {
+                    f2 = d;
                 }
             }
-            out.push((f1, f2, id));
         }
+        out.push((f1, f2, id));
     }
     out
 }
 
 /// A built-in synthetic `512 × 512` grey texture in `[0, 1]`, deterministic for `(name, seed)`.
 pub fn builtin_image(name: &str, seed: u64) -> Result<GreyImage> {
+    Ok(GreyImage {
+        w: IMAGE,
+        h: IMAGE,
+        data: normalise(builtin_window(name, seed, Window::full(IMAGE))?),
+    })
+}
+
+/// The pixels in `win` of built-in texture `name` before its normalisation to `[0, 1]`: each
+/// computed as the whole image computes it (every random draw is made, whatever the window).
+fn builtin_window(name: &str, seed: u64, win: Window) -> Result<Vec<f64>> {
     let n = IMAGE;
     let mut rng = Rng::stream(seed, 0x7E47);
     let sub = |k: u64| seed.wrapping_mul(31).wrapping_add(k);
     let coord = |i: usize| (i as f64 + 0.5) / n as f64;
+    let fbm = |cells: usize, octaves: usize, persistence: f64, seed: u64| {
+        fbm_window(n, cells, octaves, persistence, 2.0, seed, win)
+    };
     let data = match name {
         "cells" => {
-            let vor = voronoi(n, 16, &mut rng, None);
+            let vor = voronoi(n, 16, &mut rng, None, win);
             vor.iter().map(|&(f1, _, _)| f1).collect()
         }
         "cracks" => {
-            let wx = fbm_field(n, 4, 4, 0.5, 2.0, sub(1));
-            let wy = fbm_field(n, 4, 4, 0.5, 2.0, sub(2));
-            let vor = voronoi(n, 10, &mut rng, Some((&wx, &wy, 0.6)));
+            let wx = fbm(4, 4, 0.5, sub(1));
+            let wy = fbm(4, 4, 0.5, sub(2));
+            let vor = voronoi(n, 10, &mut rng, Some((&wx, &wy, 0.6)), win);
             vor.iter()
                 .map(|&(f1, f2, _)| ((f2 - f1) * 5.0).min(1.0))
                 .collect()
         }
         "cobbles" => {
-            let vor = voronoi(n, 8, &mut rng, None);
+            let vor = voronoi(n, 8, &mut rng, None, win);
             let tone: Vec<f64> = (0..64).map(|_| rng.range(0.6, 1.0)).collect();
             vor.iter()
                 .map(|&(f1, f2, id)| tone[id] * (1.0 - f1 / f2).max(0.0).sqrt())
                 .collect()
         }
         "stripes" => {
-            let t = fbm_field(n, 4, 4, 0.5, 2.0, sub(3));
-            (0..n * n)
-                .map(|i| 0.5 + 0.5 * (TAU * (12.0 * coord(i % n) + 0.4 * t[i])).sin())
+            let t = fbm(4, 4, 0.5, sub(3));
+            win.samples()
+                .zip(&t)
+                .map(|((x, _), t)| 0.5 + 0.5 * (TAU * (12.0 * coord(x) + 0.4 * t)).sin())
                 .collect()
         }
         "marble" => {
-            let t = fbm_field(n, 4, 6, 0.55, 2.0, sub(4));
-            let turb: Vec<f64> = t.iter().map(|v| v.abs()).collect();
-            (0..n * n)
-                .map(|i| {
-                    0.5 + 0.5
-                        * (TAU * (3.0 * coord(i % n) + 2.0 * coord(i / n) + 2.5 * turb[i])).sin()
+            let t = fbm(4, 6, 0.55, sub(4));
+            win.samples()
+                .zip(&t)
+                .map(|((x, y), t)| {
+                    0.5 + 0.5 * (TAU * (3.0 * coord(x) + 2.0 * coord(y) + 2.5 * t.abs())).sin()
                 })
                 .collect()
         }
         "wood" => {
-            let t = fbm_field(n, 4, 4, 0.5, 2.0, sub(5));
+            let t = fbm(4, 4, 0.5, sub(5));
             let (cx, cy) = (rng.uniform(), rng.uniform());
-            (0..n * n)
-                .map(|i| {
+            win.samples()
+                .zip(&t)
+                .map(|((x, y), t)| {
                     // periodic distance to the ring centre
-                    let dx = (coord(i % n) - cx + 0.5).rem_euclid(1.0) - 0.5;
-                    let dy = (coord(i / n) - cy + 0.5).rem_euclid(1.0) - 0.5;
-                    let r = (dx * dx + 4.0 * dy * dy).sqrt() * 14.0 + 0.8 * t[i];
+                    let dx = (coord(x) - cx + 0.5).rem_euclid(1.0) - 0.5;
+                    let dy = (coord(y) - cy + 0.5).rem_euclid(1.0) - 0.5;
+                    let r = (dx * dx + 4.0 * dy * dy).sqrt() * 14.0 + 0.8 * t;
                     r - r.floor()
                 })
                 .collect()
         }
-        "clouds" => fbm_field(n, 4, 7, 0.55, 2.0, sub(6)),
+        "clouds" => fbm(4, 7, 0.55, sub(6)),
         "ridged" => {
-            let mut z = vec![0.0; n * n];
+            let mut z = vec![0.0; win.w * win.h];
             let mut amp = 1.0;
             for o in 0..6u32 {
                 let per = 4usize << o;
                 let mut r = Rng::stream(sub(7), o as u64);
                 let noise = PeriodicNoise::new(per, &mut r);
-                for (i, zi) in z.iter_mut().enumerate() {
-                    *zi += amp * (1.0 - noise.eval(coord(i % n), coord(i / n)).abs() * 2.0).powi(2);
+                for (zi, (x, y)) in z.iter_mut().zip(win.samples()) {
+                    *zi += amp * (1.0 - noise.eval(coord(x), coord(y)).abs() * 2.0).powi(2);
                 }
                 amp *= 0.5;
             }
             z
         }
         "speckle" => {
-            let mut z: Vec<f64> = fbm_field(n, 8, 3, 0.5, 2.0, sub(8))
-                .iter()
-                .map(|v| 0.2 * v)
-                .collect();
+            let mut z: Vec<f64> = fbm(8, 3, 0.5, sub(8)).iter().map(|v| 0.2 * v).collect();
             for _ in 0..4000 {
                 let (cx, cy) = (rng.range(0.0, n as f64), rng.range(0.0, n as f64));
                 let r = rng.range(1.0, 3.5);
@@ -443,9 +526,10 @@ pub fn builtin_image(name: &str, seed: u64) -> Result<GreyImage> {
                         let d2 = ((x as f64 + 0.5 - cx).powi(2) + (y as f64 + 0.5 - cy).powi(2))
                             / (r * r);
                         if d2 < 1.0 {
-                            let k = (y.rem_euclid(n as i64) as usize) * n
-                                + x.rem_euclid(n as i64) as usize;
-                            z[k] += a * (1.0 - d2);
+                            let (x, y) = (x.rem_euclid(n as i64), y.rem_euclid(n as i64));
+                            if let Some(k) = win.index(x as usize, y as usize) {
+                                z[k] += a * (1.0 - d2);
+                            }
                         }
                     }
                 }
@@ -454,17 +538,17 @@ pub fn builtin_image(name: &str, seed: u64) -> Result<GreyImage> {
         }
         "granite" => {
             let white: Vec<f64> = (0..n * n).map(|_| rng.uniform()).collect();
-            let base = fbm_field(n, 6, 4, 0.5, 2.0, sub(9));
-            (0..n * n)
-                .map(|i| {
-                    let (x, y) = (i % n, i / n);
+            let base = fbm(6, 4, 0.5, sub(9));
+            win.samples()
+                .zip(&base)
+                .map(|((x, y), b)| {
                     let mut s = 0.0;
                     for dy in [n - 1, 0, 1] {
                         for dx in [n - 1, 0, 1] {
                             s += white[((y + dy) % n) * n + (x + dx) % n];
                         }
                     }
-                    s / 9.0 + 0.5 * base[i]
+                    s / 9.0 + 0.5 * b
                 })
                 .collect()
         }
@@ -478,11 +562,7 @@ pub fn builtin_image(name: &str, seed: u64) -> Result<GreyImage> {
             ))
         }
     };
-    Ok(GreyImage {
-        w: n,
-        h: n,
-        data: normalise(data),
-    })
+    Ok(data)
 }
 
 #[cfg(test)]
@@ -518,6 +598,38 @@ mod tests {
         );
         let e = builtin_image("bogus", 0).unwrap_err().to_string();
         assert!(e.contains("bogus") && e.contains("marble"), "{e}");
+    }
+
+    #[test]
+    fn builtin_patches_make_only_their_window_and_equal_the_whole_image_recipe() {
+        for name in builtin_names() {
+            let raw = GreyImage {
+                w: IMAGE,
+                h: IMAGE,
+                data: builtin_window(name, 5, Window::full(IMAGE)).unwrap(),
+            };
+            let img = builtin_image(name, 5).unwrap();
+            // Box resampling by 2 (the libraries' 64), identity (the paper's 128), a box of
+            // non-integer width and a bilinear enlargement.
+            for (patch, m) in [(0, 64), (5, 64), (15, 128), (6, 37), (9, 200)] {
+                let got = builtin_patch_heights(name, 5, patch, 3.0, 4.0, m).unwrap();
+                let whole = patch_heights_sized(&raw, patch, 3.0, 4.0, m).unwrap();
+                assert!(
+                    got.iter().zip(&whole).all(|(a, b)| a.to_bits() == b.to_bits()),
+                    "{name} patch {patch} m {m}"
+                );
+                // The image's normalisation to [0, 1], which the window leaves out, could move
+                // heights only by rounding (the equalised ranks of near-ties); on these 50
+                // patches it moves none.
+                let norm = patch_heights_sized(&img, patch, 3.0, 4.0, m).unwrap();
+                assert_eq!(got, norm, "{name} patch {patch} m {m}");
+            }
+        }
+        assert!(builtin_patch_heights("bogus", 0, 0, 1.0, 4.0, 64)
+            .unwrap_err()
+            .to_string()
+            .contains("bogus"));
+        assert!(builtin_patch_heights("cells", 0, 16, 1.0, 4.0, 64).is_err());
     }
 
     #[test]
