@@ -771,6 +771,48 @@ mod tests {
     }
 
     #[test]
+    fn horizon_levels_count_as_the_exact_horizon() {
+        // The compact BVNDF's question: how many polar nodes' slopes are at or above the
+        // horizon. `horizon_level` must answer it as the exact horizon does, on rough ground and
+        // on flat ground with spikes (long marches, skipped blocks).
+        let mut r = crate::rng::Rng::new(11);
+        let levels = [0.026, 0.044, 0.096, 0.185, 0.315, 0.6, 1.2, 3.0];
+        let count = |h: f64| levels.iter().filter(|&&l| l >= h).count();
+        for &(n, spiky) in &[(16usize, false), (32, true), (13, false)] {
+            let z: Vec<f64> = (0..n * n)
+                .map(|_| {
+                    if !spiky || r.range(0.0, 1.0) < 0.03 {
+                        r.range(0.0, 3.0)
+                    } else {
+                        0.0
+                    }
+                })
+                .collect();
+            let hf = Heightfield::new(n, n, z, 1.0, "rand").unwrap();
+            let v = Visibility::new(&hf);
+            for i in 0..600 {
+                let (px, py) = (r.range(0.0, n as f64), r.range(0.0, n as f64));
+                let pz = hf.surface_height(px, py);
+                let phi = if i % 3 == 0 {
+                    std::f64::consts::FRAC_PI_4 * (i % 8) as f64
+                } else {
+                    r.range(0.0, std::f64::consts::TAU)
+                };
+                let az = v.azimuth(phi.cos(), phi.sin());
+                // From the lowest level up, as the build asks (floor: the column's own node).
+                let from = i % levels.len();
+                let got = v.horizon_level(px, py, pz, &az, &levels[from..]);
+                let exact = v.horizon_along(px, py, pz, &az, levels[from], f64::INFINITY);
+                assert_eq!(
+                    count(got),
+                    count(exact),
+                    "n {n} p ({px},{py},{pz}) phi {phi} levels from {from}: {got} vs {exact}"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn march_with_block_skipping_matches_brute_force() {
         let mut r = crate::rng::Rng::new(5);
         for &n in &[13usize, 16, 24] {
