@@ -615,7 +615,9 @@ mod tests {
                 let got = builtin_patch_heights(name, 5, patch, 3.0, 4.0, m).unwrap();
                 let whole = patch_heights_sized(&raw, patch, 3.0, 4.0, m).unwrap();
                 assert!(
-                    got.iter().zip(&whole).all(|(a, b)| a.to_bits() == b.to_bits()),
+                    got.iter()
+                        .zip(&whole)
+                        .all(|(a, b)| a.to_bits() == b.to_bits()),
                     "{name} patch {patch} m {m}"
                 );
                 // The image's normalisation to [0, 1], which the window leaves out, could move
