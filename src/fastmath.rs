@@ -168,6 +168,34 @@ mod tests {
     }
 
     #[test]
+    fn floor_equals_libm() {
+        let mut r = crate::rng::Rng::new(3);
+        let mut xs = vec![
+            0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            -1e-300,
+            1e-300,
+            4_503_599_627_370_495.5,
+            -4_503_599_627_370_495.5,
+            4_503_599_627_370_496.0,
+            -9.3e18,
+            1e300,
+            f64::MAX,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ];
+        xs.extend((0..100_000).map(|i| r.range(-1e3, 1e3) * 10f64.powi(i % 12)));
+        for x in xs {
+            // Equal as numbers (the sign of a zero result may differ, which no caller sees).
+            assert_eq!(floor(x), x.floor(), "floor({x})");
+        }
+        assert!(floor(f64::NAN).is_nan());
+    }
+
+    #[test]
     fn exp_within_two_ulp_of_libm() {
         let mut worst: f64 = 0.0;
         for i in 0..=200_000 {
