@@ -647,13 +647,14 @@ impl Generator {
             }
             "weave" => weave(n, self.num("period"), self.num("height")),
             "fbm" => {
-                let mut v = fbm_field(
+                let mut v = fbm_window(
                     n,
                     self.num("cells") as usize,
                     self.num("octaves") as usize,
                     self.num("persistence"),
                     self.num("lacunarity"),
                     self.seed(),
+                    Window::full(n),
                 );
                 let peak = v.iter().fold(0.0f64, |m, x| m.max(x.abs()));
                 let s = if peak > 0.0 {
@@ -943,27 +944,6 @@ fn normal_quantile(p: f64) -> f64 {
     }
 }
 
-/// Periodic fBm on an `n × n` grid: octave `o` has `round(cells · lacunarity^o)` lattice cells
-/// (octaves finer than one cell per sample are skipped) and weight `persistence^o`. Not normalised.
-pub(crate) fn fbm_field(
-    n: usize,
-    cells: usize,
-    octaves: usize,
-    persistence: f64,
-    lacunarity: f64,
-    seed: u64,
-) -> Vec<f64> {
-    fbm_window(
-        n,
-        cells,
-        octaves,
-        persistence,
-        lacunarity,
-        seed,
-        Window::full(n),
-    )
-}
-
 /// A rectangle of samples `x0..x0 + w` × `y0..y0 + h` of an `n × n` field.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Window {
@@ -996,8 +976,10 @@ impl Window {
     }
 }
 
-/// The samples of [`fbm_field`] inside `win`, each computed exactly as the whole field computes
-/// it (a texture patch reads a sixteenth of its image).
+/// Periodic fBm on an `n × n` grid: octave `o` has `round(cells · lacunarity^o)` lattice cells
+/// (octaves finer than one cell per sample are skipped) and weight `persistence^o`. Not normalised.
+/// Only the samples inside `win` are computed (a texture patch reads a sixteenth of its image),
+/// each exactly as the whole field ([`Window::full`]) computes it.
 pub(crate) fn fbm_window(
     n: usize,
     cells: usize,
