@@ -317,7 +317,8 @@ enum LibraryCmd {
         /// Build only shard i of N (0-based, e.g. 3/8); then run `biscale library merge DIR`.
         #[arg(long)]
         shard: Option<String>,
-        /// Keep the per-chunk files after the merge.
+        /// Write per-chunk files and keep them after the merge (without it, a one-process build
+        /// writes each chunk straight into the library's arrays; a shard always writes chunk files).
         #[arg(long)]
         keep_chunks: bool,
         /// Rebuild even if the directory already holds this finished library.

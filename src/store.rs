@@ -56,6 +56,17 @@ pub struct ArrayHeader {
 }
 
 impl ArrayHeader {
+    /// The header of an array whose checksum is not known yet (zero).
+    fn unsealed(name: &str, dtype: Dtype, shape: &[usize]) -> Self {
+        ArrayHeader {
+            format: "biscale-array".into(),
+            version: ARRAY_VERSION,
+            name: name.into(),
+            dtype,
+            shape: shape.to_vec(),
+            checksum: EMPTY_SUM.into(),
+        }
+    }
     pub fn len(&self) -> usize {
         self.shape.iter().product()
     }
@@ -96,12 +107,8 @@ pub fn write_array(
     data: &[u8],
 ) -> Result<()> {
     let h = ArrayHeader {
-        format: "biscale-array".into(),
-        version: ARRAY_VERSION,
-        name: name.into(),
-        dtype,
-        shape: shape.to_vec(),
         checksum: checksum(data),
+        ..ArrayHeader::unsealed(name, dtype, shape)
     };
     if h.data_bytes() != data.len() {
         return Err(Error::new(
@@ -140,14 +147,7 @@ impl ArrayWriter {
         if let Some(dir) = path.parent() {
             std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, "create the directory", e))?;
         }
-        let header = ArrayHeader {
-            format: "biscale-array".into(),
-            version: ARRAY_VERSION,
-            name: name.into(),
-            dtype,
-            shape: shape.to_vec(),
-            checksum: EMPTY_SUM.into(),
-        };
+        let header = ArrayHeader::unsealed(name, dtype, shape);
         let (tmp, f) = crate::atomic_write::create_temp(path)?;
         let mut w = std::io::BufWriter::with_capacity(1 << 20, f);
         w.write_all(&header_bytes(&header)?)
@@ -179,32 +179,21 @@ impl ArrayWriter {
 
     /// Check the length, patch the checksum, flush to disk and rename into place.
     pub fn finish(mut self) -> Result<String> {
-        if self.written != self.header.data_bytes() {
-            return Err(Error::new(
-                self.path.display().to_string(),
-                format!(
-                    "array '{}': wrote {} bytes, the shape {:?} needs {}",
-                    self.header.name,
-                    self.written,
-                    self.header.shape,
-                    self.header.data_bytes()
-                ),
-            ));
-        }
-        let sum = format!("{:032x}", self.hasher.digest128());
-        self.header.checksum = sum.clone();
-        let head = header_bytes(&self.header)?;
         let w = self.file.take().ok_or_else(|| {
             Error::new(self.path.display().to_string(), "writer already finished")
         })?;
-        let io = |e: std::io::Error| Error::io(&self.tmp, "write", e);
-        let mut f = w.into_inner().map_err(|e| io(e.into_error()))?;
-        f.seek(SeekFrom::Start(0)).map_err(io)?;
-        f.write_all(&head).map_err(io)?;
-        f.sync_all().map_err(io)?;
-        std::fs::rename(&self.tmp, &self.path)
-            .map_err(|e| Error::io(&self.path, "rename the finished temporary file onto", e))?;
-        Ok(sum)
+        let sealed = seal(
+            w,
+            self.header.clone(),
+            self.written,
+            &self.hasher,
+            &self.tmp,
+            &self.path,
+        );
+        if sealed.is_err() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+        sealed
     }
 }
 
@@ -215,6 +204,283 @@ impl Drop for ArrayWriter {
             let _ = std::fs::remove_file(&self.tmp);
         }
     }
+}
+
+/// An array file streamed in units (a library build's chunks) that survives the process writing
+/// it. The data goes to `.NAME.partial` beside the destination, behind the header it will have
+/// (checksum zero); once a unit's bytes are written, a line of `.NAME.partial.log` records its
+/// length and xxh3-64. Opened again (after a kill, say), it reads the units already there once,
+/// checks each against its line, cuts off whatever follows the last good one and continues from
+/// there, so a line is never trusted without its data. [`PartialArray::finish`] checks the
+/// length, patches the checksum into the header, syncs, renames into place and removes the log:
+/// the result is byte for byte what [`write_array`] makes of the same data. The log is locked
+/// while open, so two processes never append to one partial file. Dropped without `finish`, the
+/// partial file and its log stay, to be resumed ([`PartialArray::discard`] removes them).
+pub struct PartialArray {
+    path: PathBuf,
+    partial: PathBuf,
+    log_path: PathBuf,
+    file: Option<std::io::BufWriter<File>>,
+    /// Held open for its lock.
+    log: File,
+    header: ArrayHeader,
+    hasher: Xxh3,
+    written: usize,
+    units: usize,
+}
+
+impl PartialArray {
+    fn side_paths(path: &Path) -> (PathBuf, PathBuf) {
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        (
+            path.with_file_name(format!(".{name}.partial")),
+            path.with_file_name(format!(".{name}.partial.log")),
+        )
+    }
+
+    fn first_line(header: &ArrayHeader) -> Result<String> {
+        serde_json::to_string(header)
+            .map_err(|e| Error::new(&header.name, format!("cannot encode the array header: {e}")))
+    }
+
+    /// The units (lengths and xxh3-64) that the log of `path`'s partial file lists for this
+    /// array, unchecked against the data; empty when there is no log or it is for another array.
+    /// A torn last line (a kill while it was written) ends the list.
+    fn logged(path: &Path, header: &ArrayHeader) -> Result<Vec<(usize, u64)>> {
+        let (_, log) = Self::side_paths(path);
+        let text = match std::fs::read(&log) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+            Err(e) => return Err(Error::io(&log, "read the partial array's log", e)),
+        };
+        let text = String::from_utf8_lossy(&text);
+        let mut lines = text.split_inclusive('\n');
+        if lines.next().map(|l| l.trim_end()) != Some(Self::first_line(header)?.as_str()) {
+            return Ok(Vec::new());
+        }
+        let mut out = Vec::new();
+        for line in lines {
+            let Some(line) = line.strip_suffix('\n') else {
+                break;
+            };
+            let parsed = line.split_once(' ').and_then(|(n, h)| {
+                (h.len() == 16)
+                    .then(|| Some((n.parse().ok()?, u64::from_str_radix(h, 16).ok()?)))
+                    .flatten()
+            });
+            match parsed {
+                Some(u) => out.push(u),
+                None => break,
+            }
+        }
+        Ok(out)
+    }
+
+    /// How many units the log of `path`'s partial file lists (see [`PartialArray::open`]).
+    pub fn logged_units(path: &Path, name: &str, dtype: Dtype, shape: &[usize]) -> Result<usize> {
+        Ok(Self::logged(path, &ArrayHeader::unsealed(name, dtype, shape))?.len())
+    }
+
+    /// Open the partial file of `path` for this array, keeping at most its first `keep` units
+    /// (those whose data matches the log), or start it afresh.
+    pub fn open(
+        path: &Path,
+        name: &str,
+        dtype: Dtype,
+        shape: &[usize],
+        keep: usize,
+    ) -> Result<Self> {
+        use std::io::{BufReader, Read};
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, "create the directory", e))?;
+        }
+        let (partial, log_path) = Self::side_paths(path);
+        let header = ArrayHeader::unsealed(name, dtype, shape);
+        let mut log = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&log_path)
+            .map_err(|e| Error::io(&log_path, "open the partial array's log", e))?;
+        match log.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => {
+                return Err(Error::new(
+                    path.display().to_string(),
+                    format!(
+                        "another process is writing this array (its log {} is locked); wait for \
+                         that build to finish or stop it",
+                        log_path.display()
+                    ),
+                ))
+            }
+            Err(std::fs::TryLockError::Error(e)) => {
+                return Err(Error::io(&log_path, "lock the partial array's log", e))
+            }
+        }
+        let head = header_bytes(&header)?;
+        let mut units = Self::logged(path, &header)?;
+        units.truncate(keep);
+        let mut file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&partial)
+            .map_err(|e| Error::io(&partial, "open the partial array", e))?;
+        let io = |e: std::io::Error| Error::io(&partial, "read the partial array", e);
+        // The units already written, checked against the log as they are hashed.
+        let mut hasher = Xxh3::new();
+        let mut good = 0;
+        let mut written = 0;
+        if !units.is_empty() {
+            let mut r = BufReader::with_capacity(1 << 20, &mut file);
+            let mut got = vec![0u8; head.len()];
+            if r.read_exact(&mut got).is_ok() && got == head {
+                let mut buf = Vec::new();
+                for &(n, sum) in &units {
+                    buf.resize(n, 0);
+                    match r.read_exact(&mut buf) {
+                        Ok(()) if xxhash_rust::xxh3::xxh3_64(&buf) == sum => {
+                            hasher.update(&buf);
+                            good += 1;
+                            written += n;
+                        }
+                        Ok(()) => break,
+                        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => break,
+                        Err(e) => return Err(io(e)),
+                    }
+                }
+            }
+        }
+        units.truncate(good);
+        // Cut the data and the log back to the good units.
+        let wio = |e: std::io::Error| Error::io(&partial, "write the partial array", e);
+        file.set_len((head.len() + written) as u64).map_err(wio)?;
+        file.seek(SeekFrom::Start(0)).map_err(wio)?;
+        file.write_all(&head).map_err(wio)?;
+        file.seek(SeekFrom::Start((head.len() + written) as u64))
+            .map_err(wio)?;
+        let mut text = Self::first_line(&header)?;
+        text.push('\n');
+        for (n, sum) in &units {
+            text.push_str(&format!("{n} {sum:016x}\n"));
+        }
+        let lio = |e: std::io::Error| Error::io(&log_path, "write the partial array's log", e);
+        log.set_len(0).map_err(lio)?;
+        log.seek(SeekFrom::Start(0)).map_err(lio)?;
+        log.write_all(text.as_bytes()).map_err(lio)?;
+        Ok(PartialArray {
+            path: path.to_path_buf(),
+            partial,
+            log_path,
+            file: Some(std::io::BufWriter::with_capacity(1 << 20, file)),
+            log,
+            header,
+            hasher,
+            written,
+            units: good,
+        })
+    }
+
+    /// The units in the partial file (after [`PartialArray::open`]'s checks, and those appended).
+    pub fn units(&self) -> usize {
+        self.units
+    }
+
+    /// Append one unit: its bytes go to the partial file (flushed to the operating system, so a
+    /// killed process loses nothing of it), then its line to the log.
+    pub fn append(&mut self, bytes: &[u8]) -> Result<()> {
+        let io = |e: std::io::Error| Error::io(&self.partial, "write the partial array", e);
+        let w = self.file.as_mut().ok_or_else(|| {
+            Error::new(self.path.display().to_string(), "writer already finished")
+        })?;
+        w.write_all(bytes).map_err(io)?;
+        w.flush().map_err(io)?;
+        self.hasher.update(bytes);
+        self.written += bytes.len();
+        let line = format!(
+            "{} {:016x}\n",
+            bytes.len(),
+            xxhash_rust::xxh3::xxh3_64(bytes)
+        );
+        self.log
+            .write_all(line.as_bytes())
+            .map_err(|e| Error::io(&self.log_path, "write the partial array's log", e))?;
+        self.units += 1;
+        Ok(())
+    }
+
+    /// Check the length, patch the checksum, flush to disk, rename into place and remove the
+    /// log. Returns the checksum.
+    pub fn finish(mut self) -> Result<String> {
+        let w = self.file.take().ok_or_else(|| {
+            Error::new(self.path.display().to_string(), "writer already finished")
+        })?;
+        let sum = seal(
+            w,
+            self.header.clone(),
+            self.written,
+            &self.hasher,
+            &self.partial,
+            &self.path,
+        )?;
+        std::fs::remove_file(&self.log_path)
+            .map_err(|e| Error::io(&self.log_path, "remove the finished array's log", e))?;
+        Ok(sum)
+    }
+
+    /// Remove the partial file of `path` and its log, if there are any.
+    pub fn discard(path: &Path) -> Result<()> {
+        let (partial, log) = Self::side_paths(path);
+        for p in [partial, log] {
+            match std::fs::remove_file(&p) {
+                Ok(()) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                Err(e) => return Err(Error::io(&p, "remove the partial array", e)),
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Finish a streamed array: check that `written` bytes fill `header`'s shape, patch the checksum
+/// of `hasher` into the header at the start of the temporary file `tmp`, sync it and rename it
+/// onto `path`. Returns the checksum.
+fn seal(
+    w: std::io::BufWriter<File>,
+    mut header: ArrayHeader,
+    written: usize,
+    hasher: &Xxh3,
+    tmp: &Path,
+    path: &Path,
+) -> Result<String> {
+    if written != header.data_bytes() {
+        return Err(Error::new(
+            path.display().to_string(),
+            format!(
+                "array '{}': wrote {written} bytes, the shape {:?} needs {}",
+                header.name,
+                header.shape,
+                header.data_bytes()
+            ),
+        ));
+    }
+    let sum = format!("{:032x}", hasher.digest128());
+    header.checksum = sum.clone();
+    let head = header_bytes(&header)?;
+    let io = |e: std::io::Error| Error::io(tmp, "write", e);
+    let mut f = w.into_inner().map_err(|e| io(e.into_error()))?;
+    f.seek(SeekFrom::Start(0)).map_err(io)?;
+    f.write_all(&head).map_err(io)?;
+    f.sync_all().map_err(io)?;
+    std::fs::rename(tmp, path)
+        .map_err(|e| Error::io(path, "rename the finished temporary file onto", e))?;
+    Ok(sum)
 }
 
 /// An open (memory-mapped) array file.
@@ -502,6 +768,78 @@ mod tests {
         std::fs::write(&p, b"hello").unwrap();
         let e = ArrayFile::open(&p, &Expect::default()).err().unwrap();
         assert!(e.to_string().contains("magic"), "{e}");
+    }
+
+    #[test]
+    fn a_partial_array_resumes_after_its_last_good_unit_and_equals_the_whole() {
+        let d = dir("partial");
+        let p = d.join("a.bsa");
+        let v: Vec<f32> = (0..1000).map(|i| (i as f32).sin()).collect();
+        let units: Vec<&[f32]> = v.chunks(100).collect();
+        write_array(
+            &d.join("whole.bsa"),
+            "a",
+            Dtype::F32,
+            &[10, 100],
+            f32_bytes(&v),
+        )
+        .unwrap();
+        let whole = std::fs::read(d.join("whole.bsa")).unwrap();
+        let open = |keep| PartialArray::open(&p, "a", Dtype::F32, &[10, 100], keep);
+        // "Killed" after four units: dropped without finish.
+        {
+            let mut w = open(usize::MAX).unwrap();
+            assert_eq!(w.units(), 0);
+            for u in &units[..4] {
+                w.append(f32_bytes(u)).unwrap();
+            }
+            // A second process cannot write the same array meanwhile.
+            let e = open(usize::MAX).err().unwrap().to_string();
+            assert!(e.contains("a.bsa") && e.contains("locked"), "{e}");
+        }
+        assert_eq!(
+            PartialArray::logged_units(&p, "a", Dtype::F32, &[10, 100]).unwrap(),
+            4
+        );
+        assert_eq!(
+            PartialArray::logged_units(&p, "a", Dtype::F32, &[10, 101]).unwrap(),
+            0,
+            "a log of another shape lists nothing"
+        );
+        // Damage the third unit's data and tear the log's last line: two units survive.
+        let (partial, log) = PartialArray::side_paths(&p);
+        let mut bytes = std::fs::read(&partial).unwrap();
+        let n = bytes.len();
+        bytes[n - 400 - 7] ^= 0x10;
+        std::fs::write(&partial, &bytes).unwrap();
+        let text = std::fs::read_to_string(&log).unwrap();
+        std::fs::write(&log, &text[..text.len() - 5]).unwrap();
+        {
+            let w = open(usize::MAX).unwrap();
+            assert_eq!(w.units(), 2);
+        }
+        // Keeping fewer than there are cuts back to that many.
+        let mut w = open(1).unwrap();
+        assert_eq!(w.units(), 1);
+        for u in &units[1..] {
+            w.append(f32_bytes(u)).unwrap();
+        }
+        let sum = w.finish().unwrap();
+        assert_eq!(std::fs::read(&p).unwrap(), whole);
+        assert_eq!(sum, checksum(f32_bytes(&v)));
+        assert!(!partial.exists() && !log.exists());
+        // A wrong length is refused and leaves the partial file to be resumed or discarded.
+        let mut w = PartialArray::open(&d.join("b.bsa"), "b", Dtype::F32, &[4], 0).unwrap();
+        w.append(&[0u8; 8]).unwrap();
+        let e = w.finish().err().unwrap().to_string();
+        assert!(e.contains("b.bsa") && e.contains("needs 16"), "{e}");
+        PartialArray::discard(&d.join("b.bsa")).unwrap();
+        let mut left: Vec<_> = std::fs::read_dir(&d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        left.sort();
+        assert_eq!(left, ["a.bsa", "whole.bsa"]);
     }
 
     #[test]

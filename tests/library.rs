@@ -1,8 +1,8 @@
 //! Library builds on the `tiny` profile: byte-identical rebuilds, sharded = one-process, resume
-//! after a kill, finished libraries left alone (unless forced), relative texture directories in
+//! after a kill (of shards, and of a one-process build writing its joined arrays), finished libraries left alone (unless forced), relative texture directories in
 //! sharded builds, corrupted and truncated files, refused directories, and lazy opening.
 
-use biscale::library::build::{build_shard, Shard};
+use biscale::library::build::{build_joined, build_shard, Shard};
 use biscale::library::profile::LibraryProfile;
 use biscale::library::progress::Progress;
 use biscale::library::{build_all, merge_shards, Library};
@@ -124,6 +124,72 @@ fn an_interrupted_build_resumes_and_a_damaged_chunk_is_rebuilt() {
     assert_eq!(data_files(&d), data_files(&clean));
     let _ = std::fs::remove_dir_all(d);
     let _ = std::fs::remove_dir_all(clean);
+}
+
+#[test]
+fn a_killed_one_process_build_resumes_its_joined_arrays_and_copies_shard_chunks_in() {
+    let (p, base) = tiny();
+    let clean = fresh("kill-clean");
+    build_all(&p, &base, &clean, &QUIET, false, false).unwrap();
+    // Kill -9 the command-line build once its geometry arrays hold a chunk (or later: the
+    // timing does not matter to what is checked).
+    let d = fresh("kill");
+    let log = d.join("geometry/.gamma.bsa.partial.log");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_biscale"))
+        .args(["library", "build", "--profile", "tiny", "--quiet", "--out"])
+        .arg(&d)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let units = |log: &Path| {
+        std::fs::read_to_string(log)
+            .map(|t| t.lines().count().saturating_sub(1))
+            .unwrap_or(0)
+    };
+    let mut seen = 0;
+    while child.try_wait().unwrap().is_none() {
+        // A chunk counts once both of its arrays have logged it.
+        seen = units(&log).min(units(&d.join("geometry/.lobes.bsa.partial.log")));
+        if seen >= 1 {
+            child.kill().unwrap();
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    child.wait().unwrap();
+    let rep = build_joined(&p, &base, &d, false, &QUIET).unwrap();
+    if !d.join("geometry/gamma.bsa").exists() {
+        panic!("the resumed build did not finish the binned columns");
+    }
+    assert!(
+        rep.chunks_reused >= seen,
+        "the {seen} logged chunks were built again ({} reused)",
+        rep.chunks_reused
+    );
+    merge_shards(&d, &QUIET, false).unwrap();
+    assert_eq!(data_files(&d), data_files(&clean));
+    assert!(
+        !log.exists() && !d.join("geometry/.gamma.bsa.partial").exists(),
+        "a finished array leaves no partial file or log"
+    );
+
+    // Chunks of an earlier sharded build are copied into the arrays, not built again, and
+    // removed once the arrays are finished.
+    let s = fresh("shard-then-one");
+    let half = build_shard(&p, &base, &s, Shard { index: 1, count: 2 }, false, &QUIET).unwrap();
+    let rep = build_joined(&p, &base, &s, false, &QUIET).unwrap();
+    assert_eq!(rep.chunks_reused, half.chunks_built);
+    assert_eq!(
+        std::fs::read_dir(s.join("chunks")).unwrap().count(),
+        0,
+        "copied chunks are removed"
+    );
+    merge_shards(&s, &QUIET, false).unwrap();
+    assert_eq!(data_files(&s), data_files(&clean));
+    for dir in [clean, d, s] {
+        let _ = std::fs::remove_dir_all(dir);
+    }
 }
 
 #[test]

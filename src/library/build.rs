@@ -1,17 +1,20 @@
 //! Building a library: items are computed in chunks (the unit of resumption and of sharding),
 //! then merged into whole arrays and compressed.
 //!
-//! `build` claims the directory (writes or checks `profile.toml`, with relative texture and MERL
-//! directories made absolute) and computes the chunks of one shard (`--shard i/N` takes chunks
-//! `k ≡ i mod N`), skipping chunks already on disk whose checksum holds, so a killed build
-//! resumes where it stopped and shards can run on different machines over a shared directory. A
-//! directory that already holds the finished library of the profile is left alone unless forced.
-//! `merge` checks that every chunk is present, joins them into `geometry/gamma.bsa`,
-//! `geometry/lobes.bsa` and `material/prefiltered.bsa` (removing each chunk once joined; a
-//! verified joined array of a merge that stopped stands for its chunks, in the build and in the
-//! merge, so a stopped merge resumes after its last join), compresses both (material: SVD of the Gram matrix; geometry:
-//! streaming randomized SVD), picks representatives by CX, and writes `manifest.json` last: a
-//! directory with a manifest is a complete library. Every item depends only on the profile, the seed and its index, and every
+//! A build claims the directory (writes or checks `profile.toml`, with relative texture and MERL
+//! directories made absolute). A one-process build ([`build_joined`]) appends its chunks in order
+//! straight to the joined arrays (resumable [`PartialArray`]s), so nothing is written twice. A
+//! shard ([`build_shard`]; `--shard i/N` takes chunks `k ≡ i mod N`) writes chunk files,
+//! skipping chunks already on disk whose checksum holds, so a killed build resumes where it
+//! stopped and shards can run on different machines over a shared directory. A directory that
+//! already holds the finished library of the profile is left alone unless forced.
+//! `merge` takes the arrays a one-process build wrote, or checks that every chunk is present and
+//! joins them into `geometry/gamma.bsa`, `geometry/lobes.bsa` and `material/prefiltered.bsa`
+//! (removing each chunk once joined; a verified joined array of a merge that stopped stands for
+//! its chunks, in the build and in the merge, so a stopped merge resumes after its last join),
+//! compresses both (material: SVD of the Gram matrix; geometry: streaming randomized SVD), picks
+//! representatives by CX, and writes `manifest.json` last: a directory with a manifest is a
+//! complete library. Every item depends only on the profile, the seed and its index, and every
 //! reduction has a fixed order, so the same profile and seed give byte-identical array files
 //! whether built in one process or in shards.
 
@@ -28,7 +31,7 @@ use crate::lightlobes::record_len;
 use crate::lowrank::{cx, rsvd_streaming_with, svd_gram, BlockSource, CxMethod, RsvdConfig};
 use crate::material::parse_material;
 use crate::prefilter::{PrefilterConfig, Prefiltered};
-use crate::store::{f32_bytes, write_array, ArrayFile, ArrayWriter, Dtype, Expect};
+use crate::store::{f32_bytes, write_array, ArrayFile, ArrayWriter, Dtype, Expect, PartialArray};
 use faer::reborrow::ReborrowMut;
 use faer::{Mat, MatMut};
 use rayon::prelude::*;
@@ -137,6 +140,9 @@ pub struct BuildReport {
     pub material_seconds: f64,
     pub geometries_built: usize,
     pub materials_built: usize,
+    /// Arrays this build wrote whole ([`build_joined`]) and their checksums, which [`merge`]
+    /// then takes without reading them again.
+    pub joined: Vec<(&'static str, String)>,
 }
 
 /// Build this shard's chunks in `dir` (resuming: valid chunks are kept).
@@ -155,6 +161,36 @@ pub fn build_shard(
     force: bool,
     progress: &Progress,
 ) -> Result<BuildReport> {
+    build(prof, base, dir, shard, force, progress, false)
+}
+
+/// Build every item in this process straight into the joined arrays (`geometry/gamma.bsa`,
+/// `geometry/lobes.bsa`, `material/prefiltered.bsa`), chunk after chunk, so no byte is written
+/// twice and the merge has nothing to join. Each array grows in a [`PartialArray`], whose log
+/// makes the build resumable as chunk files do: a killed build continues after the last chunk
+/// whose data checks out. Chunk files already in `dir` (from shards, or an earlier build that
+/// kept them) are copied in instead of being built again, and removed once their array is
+/// finished. The arrays are byte for byte those a merge of the same chunks joins. The report
+/// lists each array written with its checksum, for [`merge`]. Otherwise as [`build_shard`].
+pub fn build_joined(
+    prof: &LibraryProfile,
+    base: &Path,
+    dir: &Path,
+    force: bool,
+    progress: &Progress,
+) -> Result<BuildReport> {
+    build(prof, base, dir, Shard::ALL, force, progress, true)
+}
+
+fn build(
+    prof: &LibraryProfile,
+    base: &Path,
+    dir: &Path,
+    shard: Shard,
+    force: bool,
+    progress: &Progress,
+    stream: bool,
+) -> Result<BuildReport> {
     let mut resolved = prof.clone();
     resolved.resolve_dirs(base)?;
     let prof = &resolved;
@@ -166,6 +202,7 @@ pub fn build_shard(
         material_seconds: 0.0,
         geometries_built: 0,
         materials_built: 0,
+        joined: Vec::new(),
     };
     if !force && super::finished(dir, prof).is_some() {
         progress.note(&format!(
@@ -195,17 +232,21 @@ pub fn build_shard(
     let mats = material_items(prof, base)?;
     let [gamma, lobes, table] = parts(prof, geos.len(), mats.len());
     if force {
-        // The joined arrays of an earlier merge would stand in for chunks (see `build_chunks`).
+        // The joined arrays of an earlier merge would stand in for chunks (see `build_chunks`),
+        // and an earlier build's partial arrays would be resumed.
         for p in [&gamma, &lobes, &table] {
             let path = dir.join(p.joined);
             if path.exists() {
                 std::fs::remove_file(&path)
                     .map_err(|e| Error::io(&path, "remove the old joined array", e))?;
             }
+            PartialArray::discard(&path)?;
         }
     }
-    std::fs::create_dir_all(dir.join("chunks"))
-        .map_err(|e| Error::io(&dir.join("chunks"), "create the chunk directory", e))?;
+    if !stream {
+        std::fs::create_dir_all(dir.join("chunks"))
+            .map_err(|e| Error::io(&dir.join("chunks"), "create the chunk directory", e))?;
+    }
     let layout = gamma_layout(prof);
     let pcfg = prefilter_config(prof);
     let chunk = prof.chunk;
@@ -214,7 +255,6 @@ pub fn build_shard(
             .filter(|k| k % shard.count == shard.index)
             .collect()
     };
-
     let (n, secs) = build_chunks(
         dir,
         &[&gamma, &lobes],
@@ -224,6 +264,7 @@ pub fn build_shard(
         progress,
         "geometries (binned BVNDF and light lobes)",
         &mut rep,
+        stream,
         |it| {
             let (col, lobes) = geometry_data(it, &layout, prof)?;
             Ok(vec![
@@ -243,6 +284,7 @@ pub fn build_shard(
         progress,
         "materials (prefiltered F)",
         &mut rep,
+        stream,
         |it| {
             let m = parse_material(&it.spec)
                 .map_err(|e| e.within(format!("material item {}", it.index)))?;
@@ -254,12 +296,16 @@ pub fn build_shard(
     Ok(rep)
 }
 
-/// Build this shard's missing chunks of one item kind: items in parallel within a chunk, each
-/// chunk written atomically as one array file per part (`item_bytes` returns one byte vector
-/// per part). A chunk is missing when one of its parts has neither a valid chunk file (header,
-/// shape and checksum) nor a valid joined array: a merge stopped after joining a part has
-/// removed that part's chunks, and its joined array stands in for them. Returns the items built
-/// and the seconds spent.
+/// Build this shard's missing chunks of one item kind: items in parallel within a chunk
+/// (`item_bytes` returns one byte vector per part). A part whose verified joined array is
+/// already there (a merge stopped after joining it, or an earlier joined build) needs nothing.
+///
+/// Without `stream`, each chunk is written atomically as one array file per part, and a chunk
+/// is missing when one of its parts has neither a valid chunk file (header, shape and checksum)
+/// nor a valid joined array. With `stream` (one process, every chunk), the parts still missing
+/// grow as [`PartialArray`]s, resumed after the chunks they already hold; a chunk whose files
+/// are all valid is copied in rather than built, and its files are removed when the arrays are
+/// finished. Returns the items built and the seconds spent.
 #[allow(clippy::too_many_arguments)]
 fn build_chunks<T: Sync>(
     dir: &Path,
@@ -270,6 +316,7 @@ fn build_chunks<T: Sync>(
     progress: &Progress,
     what: &str,
     rep: &mut BuildReport,
+    stream: bool,
     item_bytes: impl Fn(&T) -> Result<Vec<Vec<u8>>> + Sync,
 ) -> Result<(usize, f64)> {
     let size = |k: usize| chunk.min(items.len() - k * chunk);
@@ -282,27 +329,90 @@ fn build_chunks<T: Sync>(
             .map(|(o, _)| o.joined)
             .collect();
         progress.note(&format!(
-            "library: {} already joined by an earlier merge (checksums hold); their chunks are not needed",
+            "library: {} already joined (checksums hold); their chunks are not needed",
             names.join(", ")
         ));
     }
     let all = mine(items.len());
-    let todo: Vec<usize> = all
-        .iter()
-        .copied()
-        .filter(|&k| {
-            outputs
-                .iter()
-                .zip(&joined)
-                .any(|(o, &j)| !j && o.open_chunk(dir, chunk, k, true).is_err())
-        })
+    // The parts this build writes: every part for chunk files, the unjoined ones when streaming.
+    let open: Vec<usize> = (0..outputs.len())
+        .filter(|&i| !stream || !joined[i])
         .collect();
-    rep.chunks_reused += all.len() - todo.len();
+    let mut writers = Vec::new();
+    let todo: Vec<usize> = if stream {
+        for (o, _) in outputs.iter().zip(&joined).filter(|(_, &j)| j) {
+            // A finished array's log, if a build stopped between its rename and the log's removal.
+            PartialArray::discard(&dir.join(o.joined))?;
+        }
+        if open.is_empty() {
+            rep.chunks_reused += all.len();
+            return Ok((0, 0.0));
+        }
+        let array = |i: usize, keep: usize| {
+            let o = outputs[i];
+            PartialArray::open(
+                &dir.join(o.joined),
+                o.name,
+                o.dtype,
+                &[o.items, o.len],
+                keep,
+            )
+        };
+        // Resume after the chunks every part holds, checked against its log.
+        let mut keep = usize::MAX;
+        for &i in &open {
+            let o = outputs[i];
+            keep = keep.min(PartialArray::logged_units(
+                &dir.join(o.joined),
+                o.name,
+                o.dtype,
+                &[o.items, o.len],
+            )?);
+        }
+        writers = loop {
+            let ws = open
+                .iter()
+                .map(|&i| array(i, keep))
+                .collect::<Result<Vec<_>>>()?;
+            let good = ws.iter().map(|w| w.units()).min().unwrap_or(0);
+            if ws.iter().all(|w| w.units() == good) {
+                break ws;
+            }
+            keep = good;
+        };
+        let start = writers[0].units();
+        if start > 0 {
+            let names: Vec<&str> = open.iter().map(|&i| outputs[i].joined).collect();
+            progress.note(&format!(
+                "library: resuming {} after {start} of {} chunks (their data checked against the log)",
+                names.join(", "),
+                all.len()
+            ));
+        }
+        rep.chunks_reused += start;
+        all[start..].to_vec()
+    } else {
+        all.iter()
+            .copied()
+            .filter(|&k| {
+                outputs
+                    .iter()
+                    .zip(&joined)
+                    .any(|(o, &j)| !j && o.open_chunk(dir, chunk, k, true).is_err())
+            })
+            .collect()
+    };
+    if !stream {
+        rep.chunks_reused += all.len() - todo.len();
+    }
     let bar = progress.bar(todo.iter().map(|&k| size(k)).sum::<usize>() as u64, what);
     let t = Instant::now();
     let mut built = 0;
-    // Each chunk's files are written (joined, checksummed, synced to disk) by a thread of their
-    // own while the next chunk is computed: one chunk in flight, so memory stays two chunks.
+    // Chunk files of this kind copied into the streamed arrays, removed once those are finished.
+    let mut copied = Vec::new();
+    let writers = std::sync::Mutex::new(writers);
+    // Each chunk's bytes are written (joined, checksummed) by a thread of their own while the
+    // next chunk is computed: one chunk in flight, in order, so memory stays two chunks.
     std::thread::scope(|scope| -> Result<()> {
         let join = |h: std::thread::ScopedJoinHandle<'_, Result<()>>| {
             h.join().unwrap_or_else(|_| {
@@ -314,43 +424,83 @@ fn build_chunks<T: Sync>(
         };
         let mut pending = None;
         for &k in &todo {
-            let part = &items[k * chunk..k * chunk + size(k)];
-            let cols: Vec<Vec<Vec<u8>>> = part
-                .par_iter()
-                .map(|it| {
-                    let b = item_bytes(it)?;
-                    bar.inc(1);
-                    Ok(b)
-                })
-                .collect::<Result<_>>()?;
+            // One byte vector per part of `open`, per item (or one for the whole chunk).
+            let reuse = stream.then(|| {
+                open.iter()
+                    .map(|&i| outputs[i].open_chunk(dir, chunk, k, true))
+                    .collect::<Result<Vec<_>>>()
+                    .ok()
+            });
+            let cols: Vec<Vec<Vec<u8>>> = match reuse.flatten() {
+                Some(files) => {
+                    let bytes = files.iter().map(|f| f.bytes().to_vec()).collect();
+                    copied.extend(files.into_iter().map(|f| f.path));
+                    bar.inc(size(k) as u64);
+                    rep.chunks_reused += 1;
+                    vec![bytes]
+                }
+                None => {
+                    let part = &items[k * chunk..k * chunk + size(k)];
+                    let cols = part
+                        .par_iter()
+                        .map(|it| {
+                            let mut b = item_bytes(it)?;
+                            bar.inc(1);
+                            if stream {
+                                b = open.iter().map(|&i| std::mem::take(&mut b[i])).collect();
+                            }
+                            Ok(b)
+                        })
+                        .collect::<Result<_>>()?;
+                    rep.chunks_built += 1;
+                    built += part.len();
+                    cols
+                }
+            };
             if let Some(h) = pending.take() {
                 join(h)?;
             }
-            let n = part.len();
+            let (n, writers, open) = (size(k), &writers, &open);
             pending = Some(scope.spawn(move || -> Result<()> {
-                for (i, o) in outputs.iter().enumerate() {
-                    let mut bytes = Vec::with_capacity(cols.iter().map(|c| c[i].len()).sum());
+                for (slot, &i) in open.iter().enumerate() {
+                    let mut bytes = Vec::with_capacity(cols.iter().map(|c| c[slot].len()).sum());
                     for c in &cols {
-                        bytes.extend_from_slice(&c[i]);
+                        bytes.extend_from_slice(&c[slot]);
                     }
-                    write_array(
-                        &chunk_path(dir, o.kind, k),
-                        o.chunk_name,
-                        o.dtype,
-                        &[n, o.len],
-                        &bytes,
-                    )?;
+                    if stream {
+                        let mut ws = writers.lock().map_err(|_| {
+                            Error::new(dir.display().to_string(), "a chunk writer failed")
+                        })?;
+                        ws[slot].append(&bytes)?;
+                    } else {
+                        let o = outputs[i];
+                        write_array(
+                            &chunk_path(dir, o.kind, k),
+                            o.chunk_name,
+                            o.dtype,
+                            &[n, o.len],
+                            &bytes,
+                        )?;
+                    }
                 }
                 Ok(())
             }));
-            rep.chunks_built += 1;
-            built += n;
         }
         match pending {
             Some(h) => join(h),
             None => Ok(()),
         }
     })?;
+    let writers = writers
+        .into_inner()
+        .map_err(|_| Error::new(dir.display().to_string(), "a chunk writer failed"))?;
+    for (w, &i) in writers.into_iter().zip(&open) {
+        let sum = w.finish()?;
+        rep.joined.push((outputs[i].joined, sum));
+    }
+    for p in copied {
+        std::fs::remove_file(&p).map_err(|e| Error::io(&p, "remove the joined chunk", e))?;
+    }
     bar.finish();
     Ok((built, t.elapsed().as_secs_f64()))
 }
@@ -641,6 +791,31 @@ impl Part {
         )
     }
 
+    /// The joined array that a build in this process has just written with checksum `sum`:
+    /// its header, shape and checksum are checked, its data is not read again. Returns `sum`.
+    fn open_built(&self, dir: &Path, sum: &str) -> Result<String> {
+        let f = ArrayFile::open(
+            &dir.join(self.joined),
+            &Expect {
+                name: Some(self.name),
+                dtype: Some(self.dtype),
+                shape: Some(&[self.items, self.len]),
+                verify: false,
+            },
+        )?;
+        if f.header.checksum != sum {
+            return Err(Error::new(
+                f.path.display().to_string(),
+                format!(
+                    "checksum {} in the header, but this build wrote {sum}; the file was changed \
+                     during the build — build again",
+                    f.header.checksum
+                ),
+            ));
+        }
+        Ok(sum.to_string())
+    }
+
     /// Join the chunks into the joined file; returns its checksum. With `consume`, each chunk
     /// is removed once it is appended, so the merge needs the library's size in free disk once,
     /// not twice (123 GB for `paper`). Call [`Part::open_chunk`] on every chunk of every part
@@ -882,14 +1057,17 @@ pub fn peak_rss_mib() -> f64 {
         .unwrap_or(0.0)
 }
 
-/// Join every chunk of `dir`, compress, and write the manifest. `build` carries the shard build's
-/// times when the merge follows a build in the same process.
+/// Join every chunk of `dir`, compress, and write the manifest. `times` carries the build's
+/// times when the merge follows a build in the same process; `built` lists the joined arrays
+/// that build wrote and their checksums ([`BuildReport::joined`]), taken as they are (header,
+/// shape and checksum compared, the data not read again).
 pub fn merge(
     dir: &Path,
     base: &Path,
     progress: &Progress,
     mut times: StageTimes,
     keep_chunks: bool,
+    built: &[(&str, String)],
 ) -> Result<Manifest> {
     let ptext = std::fs::read_to_string(dir.join("profile.toml")).map_err(|e| {
         Error::io(
@@ -911,12 +1089,16 @@ pub fn merge(
     // chunk, before it joins (and removes) anything.
     let mut joined = Vec::new();
     for p in &parts {
+        if let Some((_, sum)) = built.iter().find(|(rel, _)| *rel == p.joined) {
+            joined.push(Some((p.open_built(dir, sum)?, false)));
+            continue;
+        }
         let missing = (0..p.items.div_ceil(prof.chunk))
             .find_map(|k| p.open_chunk(dir, prof.chunk, k, false).err());
         joined.push(match missing {
             None => None,
             Some(e) => match p.open_joined(dir) {
-                Ok(f) => Some(f.header.checksum.clone()),
+                Ok(f) => Some((f.header.checksum.clone(), true)),
                 Err(_) => return Err(e),
             },
         });
@@ -932,11 +1114,13 @@ pub fn merge(
     );
     for (p, done) in parts.iter().zip(joined) {
         let sum = match done {
-            Some(sum) => {
-                progress.note(&format!(
-                    "merge: {} was joined by an earlier merge; kept",
-                    p.joined
-                ));
+            Some((sum, earlier)) => {
+                if earlier {
+                    progress.note(&format!(
+                        "merge: {} was joined by an earlier merge; kept",
+                        p.joined
+                    ));
+                }
                 sum
             }
             None => p.assemble(dir, prof.chunk, !keep_chunks, &bar)?,

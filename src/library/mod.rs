@@ -58,7 +58,12 @@ pub fn build_all(
     force: bool,
 ) -> Result<Manifest> {
     let t = Instant::now();
-    let rep = build::build_shard(prof, base, dir, Shard::ALL, force, progress)?;
+    // Without chunk files to keep, the chunks go straight into the joined arrays.
+    let rep = if keep_chunks {
+        build::build_shard(prof, base, dir, Shard::ALL, force, progress)?
+    } else {
+        build::build_joined(prof, base, dir, force, progress)?
+    };
     if rep.already_built {
         return Manifest::read(dir);
     }
@@ -69,7 +74,7 @@ pub fn build_all(
         shards_in_process: 1,
         ..Default::default()
     };
-    let mut m = merge(dir, base, progress, times, keep_chunks)?;
+    let mut m = merge(dir, base, progress, times, keep_chunks, &rep.joined)?;
     m.build.total_seconds = t.elapsed().as_secs_f64();
     m.write(dir)?;
     Ok(m)
@@ -83,7 +88,7 @@ pub fn merge_shards(dir: &Path, progress: &Progress, keep_chunks: bool) -> Resul
         threads: rayon::current_num_threads(),
         ..Default::default()
     };
-    let mut m = merge(dir, &base, progress, times, keep_chunks)?;
+    let mut m = merge(dir, &base, progress, times, keep_chunks, &[])?;
     m.build.total_seconds = t.elapsed().as_secs_f64();
     m.write(dir)?;
     Ok(m)
