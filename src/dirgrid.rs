@@ -101,8 +101,9 @@ impl DirGrid {
             (i, t.clamp(0.0, 1.0))
         };
         let x = phi / TAU * self.n_phi as f64;
-        let j0 = (x.floor() as usize) % self.n_phi;
-        let fp = x - x.floor();
+        let xf = crate::fastmath::floor(x);
+        let j0 = (xf as usize) % self.n_phi;
+        let fp = x - xf;
         let j1 = (j0 + 1) % self.n_phi;
         [
             (self.node(it, j0), (1.0 - ft) * (1.0 - fp)),

@@ -33,28 +33,33 @@ fn clean(s: f64) -> f64 {
 
 /// `fbar` at every pair.
 pub fn fbar<G: LobeSource + ?Sized>(geo: &G, mat: &Prefiltered, pairs: &[DirPair]) -> Vec<f64> {
-    fbar_by(mat, pairs, geo.clusters(), |_, p, out| {
+    fbar_by(mat, pairs, None, geo.clusters(), |_, p, out| {
         geo.lobes(p.wi, p.wo, mat.resolves_shape(), out)
     })
 }
 
 /// `fbar` at every pair, with pair `i`'s lobes (about `clusters` of them) put in `out` by
-/// `lobes(i, pair, out)`.
+/// `lobes(i, pair, out)`. The pairs are visited in `order` (a permutation of their indices;
+/// `None`: as given), which changes no value, only the order in which `lobes` reads its data.
 pub fn fbar_by(
     mat: &Prefiltered,
     pairs: &[DirPair],
+    order: Option<&[usize]>,
     clusters: usize,
     mut lobes: impl FnMut(usize, &DirPair, &mut Vec<(f64, Vmf)>),
 ) -> Vec<f64> {
     let mut scratch = Vec::with_capacity(clusters);
-    pairs
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            lobes(i, p, &mut scratch);
-            clean(mat.eval_sum(p.wi, p.wo, &scratch))
-        })
-        .collect()
+    let mut out = vec![0.0; pairs.len()];
+    let mut one = |i: usize| {
+        let p = &pairs[i];
+        lobes(i, p, &mut scratch);
+        out[i] = clean(mat.eval_sum(p.wi, p.wo, &scratch));
+    };
+    match order {
+        Some(order) => order.iter().for_each(|&i| one(i)),
+        None => (0..pairs.len()).for_each(one),
+    }
+    out
 }
 
 /// The lobes of one geometry at a fixed set of pairs, assembled once: evaluating many materials
@@ -69,27 +74,30 @@ pub struct FixedLobes {
 
 impl FixedLobes {
     pub fn new<G: LobeSource + ?Sized>(geo: &G, pairs: &[DirPair]) -> Self {
-        Self::by(pairs, geo.clusters(), |_, p, l| {
+        Self::by(pairs, None, geo.clusters(), |_, p, l| {
             geo.lobes(p.wi, p.wo, false, l)
         })
     }
 
     /// The lobes at `pairs`, pair `i`'s (about `clusters` of them) put in `out` by
-    /// `lobes(i, pair, out)`.
+    /// `lobes(i, pair, out)`, the pairs visited in `order` (as [`fbar_by`]).
     pub fn by(
         pairs: &[DirPair],
+        order: Option<&[usize]>,
         clusters: usize,
         mut lobes: impl FnMut(usize, &DirPair, &mut Vec<(f64, Vmf)>),
     ) -> Self {
-        let lobes = pairs
-            .iter()
-            .enumerate()
-            .map(|(i, p)| {
-                let mut l = Vec::with_capacity(clusters);
-                lobes(i, p, &mut l);
-                l
-            })
-            .collect();
+        let mut all = vec![Vec::new(); pairs.len()];
+        let mut one = |i: usize| {
+            let mut l = Vec::with_capacity(clusters);
+            lobes(i, &pairs[i], &mut l);
+            all[i] = l;
+        };
+        match order {
+            Some(order) => order.iter().for_each(|&i| one(i)),
+            None => (0..pairs.len()).for_each(one),
+        }
+        let lobes = all;
         FixedLobes {
             pairs: pairs.to_vec(),
             lobes,

@@ -103,8 +103,8 @@ impl NormalGrid {
         let g1 = (self.g - 1) as f64;
         let fu = ((u + 1.0) * 0.5 * g1).clamp(0.0, g1);
         let fv = ((v + 1.0) * 0.5 * g1).clamp(0.0, g1);
-        let iu = (fu.floor() as usize).min(self.g - 2);
-        let iv = (fv.floor() as usize).min(self.g - 2);
+        let iu = (crate::fastmath::floor(fu) as usize).min(self.g - 2);
+        let iv = (crate::fastmath::floor(fv) as usize).min(self.g - 2);
         let (au, av) = (fu - iu as f64, fv - iv as f64);
         let at = |i: usize, j: usize| j * self.g + i;
         [

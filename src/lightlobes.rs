@@ -178,15 +178,37 @@ impl Node {
 pub struct LightPairs {
     pub pairs: Vec<DirPair>,
     nodes: Vec<Option<Node>>,
+    /// The pairs' indices sorted by where their data lies in a record (light, then first view
+    /// node): evaluated in this order, a geometry's record is read front to back, block after
+    /// nearby block, instead of at random (the re-rank of a search reads thousands of records
+    /// that are not in the processor's caches).
+    order: Vec<usize>,
 }
 
 impl LightPairs {
     pub fn new(layout: &GammaLayout, pairs: Vec<DirPair>) -> Self {
-        let nodes = pairs
+        let nodes: Vec<Option<Node>> = pairs
             .iter()
             .map(|p| Node::find(layout, p.wi, p.wo))
             .collect();
-        LightPairs { pairs, nodes }
+        let mut order: Vec<usize> = (0..pairs.len()).collect();
+        order.sort_by_key(|&i| match &nodes[i] {
+            Some(n) => (
+                n.light,
+                n.views
+                    .iter()
+                    .filter(|v| v.1 != 0.0)
+                    .map(|v| v.0)
+                    .min()
+                    .unwrap_or(0),
+            ),
+            None => (usize::MAX, 0),
+        });
+        LightPairs {
+            pairs,
+            nodes,
+            order,
+        }
     }
 }
 
@@ -194,9 +216,13 @@ impl LightLobes<'_> {
     /// `fbar` of `mat` at `at`'s pairs (found with this geometry's layout); equal to
     /// [`crate::fast::fbar`] at the same pairs.
     pub fn fbar(&self, mat: &Prefiltered, at: &LightPairs) -> Vec<f64> {
-        crate::fast::fbar_by(mat, &at.pairs, self.clusters, |i, p, out| {
-            self.lobes_of(at, i, p, out)
-        })
+        crate::fast::fbar_by(
+            mat,
+            &at.pairs,
+            Some(&at.order),
+            self.clusters,
+            |i, p, out| self.lobes_of(at, i, p, out),
+        )
     }
 
     /// The lobes at `at`'s pair `i`.
@@ -211,7 +237,7 @@ impl LightLobes<'_> {
     /// The lobes at `at`'s pairs, for evaluating many materials there; equal to
     /// [`crate::fast::FixedLobes::new`] at the same pairs.
     pub fn fixed(&self, at: &LightPairs) -> crate::fast::FixedLobes {
-        crate::fast::FixedLobes::by(&at.pairs, self.clusters, |i, p, out| {
+        crate::fast::FixedLobes::by(&at.pairs, Some(&at.order), self.clusters, |i, p, out| {
             self.lobes_of(at, i, p, out)
         })
     }

@@ -445,7 +445,7 @@ fn local_coords(cfg: &PrefilterConfig, th: f64, kappa: f64, mu: Vec3) -> TableCo
     let pm = crate::fastmath::atan2_upper(mu.y.abs(), mu.x);
     let fp = (pm / PI * (np - 1) as f64).clamp(0.0, (np - 1) as f64);
     let split = |f: f64, n: usize| {
-        let i = (f.floor() as usize).min(n - 2);
+        let i = (crate::fastmath::floor(f) as usize).min(n - 2);
         (i, f - i as f64)
     };
     let (ih, wh) = split(fh, nh);
