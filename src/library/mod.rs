@@ -17,7 +17,8 @@
 //! geometry/lobes.bsa            f32 [geometries, record]: light lobes (crate::lightlobes)
 //! material/...                  the same for materials, with prefiltered.bsa (f32 [materials,
 //!                               table]) instead of gamma.bsa, and colour.bsa / colour-shifts.bsa
-//! chunks/                       build work, removed after the merge
+//! chunks/                       build work of shards (and of --keep-chunks), removed after the merge
+//! */.NAME.bsa.partial(.log)     a one-process build's joined array while it grows (store::PartialArray)
 //! ```
 //!
 //! [`Library::open`] reads only the manifest; each array is mapped and checked the first time a
