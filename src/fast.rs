@@ -38,6 +38,14 @@ pub fn fbar<G: LobeSource + ?Sized>(geo: &G, mat: &Prefiltered, pairs: &[DirPair
     })
 }
 
+/// Call `f` with every index below `n`, in `order` when given (a permutation), else ascending.
+fn visit(n: usize, order: Option<&[usize]>, f: impl FnMut(usize)) {
+    match order {
+        Some(order) => order.iter().copied().for_each(f),
+        None => (0..n).for_each(f),
+    }
+}
+
 /// `fbar` at every pair, with pair `i`'s lobes (about `clusters` of them) put in `out` by
 /// `lobes(i, pair, out)`. The pairs are visited in `order` (a permutation of their indices;
 /// `None`: as given), which changes no value, only the order in which `lobes` reads its data.
@@ -50,15 +58,11 @@ pub fn fbar_by(
 ) -> Vec<f64> {
     let mut scratch = Vec::with_capacity(clusters);
     let mut out = vec![0.0; pairs.len()];
-    let mut one = |i: usize| {
+    visit(pairs.len(), order, |i| {
         let p = &pairs[i];
         lobes(i, p, &mut scratch);
         out[i] = clean(mat.eval_sum(p.wi, p.wo, &scratch));
-    };
-    match order {
-        Some(order) => order.iter().for_each(|&i| one(i)),
-        None => (0..pairs.len()).for_each(one),
-    }
+    });
     out
 }
 
@@ -88,15 +92,11 @@ impl FixedLobes {
         mut lobes: impl FnMut(usize, &DirPair, &mut Vec<(f64, Vmf)>),
     ) -> Self {
         let mut all = vec![Vec::new(); pairs.len()];
-        let mut one = |i: usize| {
+        visit(pairs.len(), order, |i| {
             let mut l = Vec::with_capacity(clusters);
             lobes(i, &pairs[i], &mut l);
             all[i] = l;
-        };
-        match order {
-            Some(order) => order.iter().for_each(|&i| one(i)),
-            None => (0..pairs.len()).for_each(one),
-        }
+        });
         let lobes = all;
         FixedLobes {
             pairs: pairs.to_vec(),

@@ -380,6 +380,14 @@ mod tests {
             let b = crate::fast::fbar(&full, &pf, &pairs);
             let fixed = crate::fast::FixedLobes::new(&ll, &pairs).fbar(&pf);
             assert_eq!(a, fixed, "lobes assembled once give the same fbar");
+            // Pairs placed once and visited in the records' order (here not the given order:
+            // reversed, so the lights run backwards) give each pair its own value.
+            let rev: Vec<DirPair> = pairs.iter().rev().copied().collect();
+            let at = LightPairs::new(&lay, rev);
+            assert!(at.order.windows(2).any(|w| w[0] > w[1]), "the order is not the given one");
+            let want: Vec<f64> = a.iter().rev().copied().collect();
+            assert_eq!(ll.fbar(&pf, &at), want);
+            assert_eq!(ll.fixed(&at).fbar(&pf), want);
             let rel = crate::bench::relative_rms(&a, &b);
             assert!(
                 rel < 0.05,

@@ -780,13 +780,18 @@ impl Part {
     /// The joined array, its checksum verified: a merge that stopped after joining this part
     /// (and removed its chunks) left it, and neither the build nor the merge redo it.
     fn open_joined(&self, dir: &Path) -> Result<ArrayFile> {
+        self.open_whole(dir, true)
+    }
+
+    /// The joined array with its name, type and shape checked (and its checksum when `verify`).
+    fn open_whole(&self, dir: &Path, verify: bool) -> Result<ArrayFile> {
         ArrayFile::open(
             &dir.join(self.joined),
             &Expect {
                 name: Some(self.name),
                 dtype: Some(self.dtype),
                 shape: Some(&[self.items, self.len]),
-                verify: true,
+                verify,
             },
         )
     }
@@ -794,15 +799,7 @@ impl Part {
     /// The joined array that a build in this process has just written with checksum `sum`:
     /// its header, shape and checksum are checked, its data is not read again. Returns `sum`.
     fn open_built(&self, dir: &Path, sum: &str) -> Result<String> {
-        let f = ArrayFile::open(
-            &dir.join(self.joined),
-            &Expect {
-                name: Some(self.name),
-                dtype: Some(self.dtype),
-                shape: Some(&[self.items, self.len]),
-                verify: false,
-            },
-        )?;
+        let f = self.open_whole(dir, false)?;
         if f.header.checksum != sum {
             return Err(Error::new(
                 f.path.display().to_string(),
