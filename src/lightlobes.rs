@@ -384,7 +384,10 @@ mod tests {
             // reversed, so the lights run backwards) give each pair its own value.
             let rev: Vec<DirPair> = pairs.iter().rev().copied().collect();
             let at = LightPairs::new(&lay, rev);
-            assert!(at.order.windows(2).any(|w| w[0] > w[1]), "the order is not the given one");
+            assert!(
+                at.order.windows(2).any(|w| w[0] > w[1]),
+                "the order is not the given one"
+            );
             let want: Vec<f64> = a.iter().rev().copied().collect();
             assert_eq!(ll.fbar(&pf, &at), want);
             assert_eq!(ll.fixed(&at).fbar(&pf), want);

@@ -42,6 +42,9 @@ pub trait BlockSource: Sync {
         cols: Range<usize>,
         out: MatMut<'_, f64>,
     ) -> Result<()>;
+    /// A hint that the columns `cols` will be read soon (a source on disk starts reading them
+    /// in the background, so a pass's reads overlap its products). By default nothing.
+    fn prefetch(&self, _cols: Range<usize>) {}
     /// The same block in single precision, for the randomized SVD's products (the library's
     /// matrices are stored in half or single precision). By default read in double and rounded.
     fn read_block_f32(
@@ -527,7 +530,15 @@ fn times_right(
         .iter()
         .map(|r| (Mat::zeros(r.len(), l), 0.0))
         .collect();
-    for cols in ranges(n, chunk) {
+    let chunks = ranges(n, chunk);
+    if let Some(first) = chunks.first() {
+        b.prefetch(first.clone());
+    }
+    for (k, cols) in chunks.iter().enumerate() {
+        if let Some(next) = chunks.get(k + 1) {
+            b.prefetch(next.clone());
+        }
+        let cols = cols.clone();
         parts
             .par_iter_mut()
             .zip(row_tiles.par_iter())
@@ -570,6 +581,9 @@ fn times_left_t(
     let parts = chunks
         .par_iter()
         .map(|cols| -> Result<Mat<f32>> {
+            // Threads take runs of consecutive chunks: the next one is likely this thread's.
+            b.prefetch(cols.clone());
+            b.prefetch(cols.end..(cols.end + chunk).min(n));
             let mut z = Mat::zeros(cols.len(), l);
             for rows in &row_tiles {
                 let (t, _) = read_tile_f32(ctx, b, rows.clone(), cols.clone())?;

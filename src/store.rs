@@ -620,6 +620,31 @@ impl ArrayFile {
         &self.map[self.offset..]
     }
 
+    /// Ask the operating system to start reading data bytes `start..start + len` into the page
+    /// cache now (`posix_fadvise(POSIX_FADV_WILLNEED)`, issued from a thread of its own, since
+    /// queueing the reads of a large range can take a while), so that later reads find them
+    /// there. A hint: nothing is mapped into this process, and a range past the data or a
+    /// refusal is ignored.
+    pub fn will_need(&self, start: usize, len: usize) {
+        use std::os::fd::AsRawFd;
+        let n = self.header.data_bytes();
+        if start >= n || len == 0 {
+            return;
+        }
+        let Ok(f) = self.file.try_clone() else {
+            return;
+        };
+        let (off, len) = (
+            (self.offset + start) as libc::off_t,
+            len.min(n - start) as libc::off_t,
+        );
+        std::thread::spawn(move || {
+            // SAFETY: `f` is an open file descriptor owned by this thread; the call only reads
+            // its arguments.
+            unsafe { libc::posix_fadvise(f.as_raw_fd(), off, len, libc::POSIX_FADV_WILLNEED) };
+        });
+    }
+
     /// Copy data bytes `start..start + buf.len()` into `buf` with a positioned read instead of
     /// through the map. For streaming passes over arrays larger than memory: pages read through
     /// the map stay in this process's resident set (a randomized SVD over the 14 GB binned

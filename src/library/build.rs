@@ -699,6 +699,11 @@ impl BlockSource for ItemMatrix<'_> {
     ) -> Result<()> {
         self.read_into(rows, cols, out)
     }
+    /// Items are stored one after another, so columns `cols` are one byte range.
+    fn prefetch(&self, cols: Range<usize>) {
+        let size = self.len * self.file.header.dtype.size();
+        self.file.will_need(cols.start * size, cols.len() * size);
+    }
 }
 
 /// One array of a library that the build writes in chunks (`chunks/KIND-NNNNNN.bsa`) and the
