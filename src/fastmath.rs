@@ -4,9 +4,34 @@
 //! 8 % of a compact BVNDF build). `acos` and `atan2`: the fast evaluator finds the prefiltered
 //! table's coordinates of every lobe it reads ([`crate::prefilter`]), and libm's `acos` and
 //! `atan2` were a fifth of that work. Both here are within 3e-8 rad of libm's, far below what a
-//! multilinear table read at steps of degrees resolves; they are not for anything else.
+//! multilinear table read at steps of degrees resolves; they are not for anything else. And
+//! `dot`, a dot product with partial sums, for the compressed search's per-item terms.
 
 use std::f64::consts::{FRAC_PI_2, FRAC_PI_4, PI};
+
+/// `Σ a_i b_i` in `f64` over the shorter of the two, with eight partial sums so that the loop
+/// runs in vector registers (the sum's rounding differs from a sequential one's in the last
+/// bits). For the compressed search's per-item terms, where a sequential sum waited on each
+/// addition.
+#[inline]
+pub fn dot<A: Copy + Into<f64>, B: Copy + Into<f64>>(a: &[A], b: &[B]) -> f64 {
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [0.0f64; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f64 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(&x, &y)| x.into() * y.into())
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for i in 0..8 {
+            acc[i] += x[i].into() * y[i].into();
+        }
+    }
+    acc.iter().sum::<f64>() + tail
+}
 
 /// `x.floor()`, exactly, without a library call: a truncating conversion corrected for negative
 /// non-integers. Beyond `2^52` every `f64` is an integer (and NaN or infinities pass through).
@@ -165,6 +190,22 @@ mod tests {
         assert!(worst < 1e-15, "ln_1p: worst difference {worst:e}");
         assert!(ln_1p(f64::NAN).is_nan());
         assert_eq!(ln_1p(f64::INFINITY), f64::INFINITY);
+    }
+
+    #[test]
+    fn dot_equals_a_sequential_sum_to_rounding() {
+        for n in [0usize, 1, 7, 8, 9, 99, 490] {
+            let a: Vec<f32> = (0..n).map(|i| ((i * 37 % 11) as f32 - 5.0) / 3.0).collect();
+            let b: Vec<f64> = (0..n).map(|i| ((i * 13 % 7) as f64 - 3.0) * 0.7).collect();
+            let want: f64 = a.iter().zip(&b).map(|(&x, &y)| x as f64 * y).sum();
+            let scale: f64 = a.iter().zip(&b).map(|(&x, &y)| (x as f64 * y).abs()).sum();
+            assert!(
+                (dot(&a, &b) - want).abs() <= 1e-14 * scale.max(1.0),
+                "n = {n}"
+            );
+        }
+        // The shorter slice sets the length.
+        assert_eq!(dot(&[1.0f32, 2.0, 3.0], &[1.0f64, 1.0]), 3.0);
     }
 
     #[test]

@@ -368,48 +368,49 @@ pub fn search_errors_multi(
             f64::INFINITY
         }
     };
-    let blocks = |n: usize| -> Vec<(usize, usize)> {
-        (0..n)
-            .step_by(SEARCH_BLOCK)
-            .map(|j0| (j0, (j0 + SEARCH_BLOCK).min(n)))
-            .collect()
+    let nt = ts.len();
+    // Per block of items, `[target][item in block]` flattened target-major; joined into
+    // `[target][item]` in the blocks' order.
+    let join = |sizes: &mut dyn Iterator<Item = usize>, blocks: Vec<Vec<f64>>| -> Vec<Vec<f64>> {
+        let mut out: Vec<Vec<f64>> = vec![Vec::new(); nt];
+        for (n, b) in sizes.zip(&blocks) {
+            for (ti, o) in out.iter_mut().enumerate() {
+                o.extend_from_slice(&b[ti * n..(ti + 1) * n]);
+            }
+        }
+        out
     };
-    // The clamped error of the items `ids` (all items when `None`) for every target,
-    // `[item][target]`: one reconstruction per item serves all targets.
-    let clamped = |ids: Option<&[usize]>| -> Vec<Vec<f64>> {
-        let n = ids.map_or(items, |v| v.len());
-        let item = |j: usize| ids.map_or(j, |v| v[j]);
-        blocks(n)
-            .par_iter()
-            .flat_map_iter(|&(j0, j1)| {
-                let xm = Mat::<f64>::from_fn(c, j1 - j0, |k, j| x[item(j0 + j) * c + k] as f64);
+    // The clamped error of the items `ids` for every target, `[target][position in ids]`: one
+    // reconstruction per item serves all targets.
+    let clamped = |ids: &[usize]| -> Vec<Vec<f64>> {
+        let blocks: Vec<Vec<f64>> = ids
+            .par_chunks(SEARCH_BLOCK)
+            .map(|chunk| {
+                let n = chunk.len();
+                let xm = Mat::<f64>::from_fn(c, n, |k, j| x[chunk[j] * c + k] as f64);
                 let prod = &aw * &xm;
-                let (tws, n2s) = (&tws, &n2s);
-                (0..j1 - j0)
-                    .map(move |j| {
-                        tws.iter()
-                            .zip(n2s)
-                            .map(|(tw, &n2)| {
-                                let mut d = 0.0;
-                                for (p, tp) in tw.iter().enumerate() {
-                                    let e = tp - prod[(p, j)].max(0.0);
-                                    d += e * e;
-                                }
-                                rel(n2, d)
+                let mut out = vec![0.0; nt * n];
+                for j in 0..n {
+                    let col = prod.col_as_slice(j);
+                    for (ti, (tw, &n2)) in tws.iter().zip(&n2s).enumerate() {
+                        let d: f64 = tw
+                            .iter()
+                            .zip(col)
+                            .map(|(tp, v)| {
+                                let e = tp - v.max(0.0);
+                                e * e
                             })
-                            .collect::<Vec<f64>>()
-                    })
-                    .collect::<Vec<_>>()
+                            .sum();
+                        out[ti * n + j] = rel(n2, d);
+                    }
+                }
+                out
             })
-            .collect()
+            .collect();
+        join(&mut ids.chunks(SEARCH_BLOCK).map(|b| b.len()), blocks)
     };
-    let transpose = |by_item: Vec<Vec<f64>>| -> Vec<Vec<f64>> {
-        (0..ts.len())
-            .map(|ti| by_item.iter().map(|e| e[ti]).collect())
-            .collect()
-    };
-    if items <= rescore.saturating_mul(ts.len()) {
-        return transpose(clamped(None));
+    if items <= rescore.saturating_mul(nt) {
+        return clamped(&(0..items).collect::<Vec<_>>());
     }
     // The Gram product runs in f32, the weights' own precision (twice the f64 rate); its
     // rounding only decides which items are rescored, in f64, below.
@@ -423,37 +424,36 @@ pub fn search_errors_multi(
                 .collect()
         })
         .collect();
-    let by_item: Vec<Vec<f64>> = blocks(items)
+    let starts: Vec<usize> = (0..items).step_by(SEARCH_BLOCK).collect();
+    let blocks: Vec<Vec<f64>> = starts
         .par_iter()
-        .flat_map_iter(|&(j0, j1)| {
-            let xm = Mat::<f32>::from_fn(c, j1 - j0, |k, j| x[(j0 + j) * c + k]);
-            let qx = &q * &xm;
-            let (bvecs, n2s) = (&bvecs, &n2s);
-            (0..j1 - j0)
-                .map(move |j| {
-                    let mut quad = 0.0;
-                    for k in 0..c {
-                        quad += xm[(k, j)] as f64 * qx[(k, j)] as f64;
-                    }
-                    bvecs
-                        .iter()
-                        .zip(n2s)
-                        .map(|(b, &n2)| {
-                            let lin: f64 = (0..c).map(|k| xm[(k, j)] as f64 * b[k]).sum();
-                            rel(n2, n2 - 2.0 * lin + quad)
-                        })
-                        .collect::<Vec<f64>>()
-                })
-                .collect::<Vec<_>>()
+        .map(|&j0| {
+            let n = SEARCH_BLOCK.min(items - j0);
+            // The block's weights, item-major: column-major `c × n`, read in place.
+            let xb = &x[j0 * c..(j0 + n) * c];
+            let qx = &q * faer::MatRef::from_column_major_slice(xb, c, n);
+            let mut out = vec![0.0; nt * n];
+            for (j, xj) in xb.chunks_exact(c).enumerate() {
+                let quad = crate::fastmath::dot(xj, qx.col_as_slice(j));
+                for (ti, (b, &n2)) in bvecs.iter().zip(&n2s).enumerate() {
+                    let lin = crate::fastmath::dot(xj, b);
+                    out[ti * n + j] = rel(n2, n2 - 2.0 * lin + quad);
+                }
+            }
+            out
         })
         .collect();
-    let mut errors = transpose(by_item);
+    let mut errors = join(
+        &mut starts.iter().map(|&j0| SEARCH_BLOCK.min(items - j0)),
+        blocks,
+    );
     let mut best: Vec<usize> = errors.iter().flat_map(|e| smallest(e, rescore)).collect();
     best.sort_unstable();
     best.dedup();
-    for (j, e) in best.iter().zip(clamped(Some(&best))) {
-        for (ti, v) in e.into_iter().enumerate() {
-            errors[ti][*j] = v;
+    let exact = clamped(&best);
+    for (ti, e) in exact.into_iter().enumerate() {
+        for (&j, v) in best.iter().zip(e) {
+            errors[ti][j] = v;
         }
     }
     errors
