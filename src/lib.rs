@@ -7,6 +7,7 @@
 // range guard must reject; `partial_cmp` would hide that.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod cpu;
 pub mod error;
 pub mod fastmath;
 pub mod frame;

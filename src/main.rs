@@ -433,6 +433,10 @@ fn forward_help() -> String {
 }
 
 fn main() -> ExitCode {
+    if let Err(e) = biscale::cpu::check() {
+        eprintln!("biscale: error: {e}");
+        return ExitCode::from(2);
+    }
     let cli = Cli::parse();
     let result = match cli.cmd {
         Cmd::Design {
