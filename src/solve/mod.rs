@@ -369,21 +369,21 @@ pub fn search_errors_multi(
         }
     };
     let nt = ts.len();
-    // Per block of items, `[target][item in block]` flattened target-major; joined into
+    // Blocks of `n` items each, `[target][item in block]` flattened target-major, joined into
     // `[target][item]` in the blocks' order.
-    let join = |sizes: &mut dyn Iterator<Item = usize>, blocks: Vec<Vec<f64>>| -> Vec<Vec<f64>> {
+    fn join(nt: usize, blocks: Vec<(usize, Vec<f64>)>) -> Vec<Vec<f64>> {
         let mut out: Vec<Vec<f64>> = vec![Vec::new(); nt];
-        for (n, b) in sizes.zip(&blocks) {
+        for (n, b) in &blocks {
             for (ti, o) in out.iter_mut().enumerate() {
                 o.extend_from_slice(&b[ti * n..(ti + 1) * n]);
             }
         }
         out
-    };
+    }
     // The clamped error of the items `ids` for every target, `[target][position in ids]`: one
     // reconstruction per item serves all targets.
     let clamped = |ids: &[usize]| -> Vec<Vec<f64>> {
-        let blocks: Vec<Vec<f64>> = ids
+        let blocks: Vec<(usize, Vec<f64>)> = ids
             .par_chunks(SEARCH_BLOCK)
             .map(|chunk| {
                 let n = chunk.len();
@@ -404,10 +404,10 @@ pub fn search_errors_multi(
                         out[ti * n + j] = rel(n2, d);
                     }
                 }
-                out
+                (n, out)
             })
             .collect();
-        join(&mut ids.chunks(SEARCH_BLOCK).map(|b| b.len()), blocks)
+        join(nt, blocks)
     };
     if items <= rescore.saturating_mul(nt) {
         return clamped(&(0..items).collect::<Vec<_>>());
@@ -425,7 +425,7 @@ pub fn search_errors_multi(
         })
         .collect();
     let starts: Vec<usize> = (0..items).step_by(SEARCH_BLOCK).collect();
-    let blocks: Vec<Vec<f64>> = starts
+    let blocks: Vec<(usize, Vec<f64>)> = starts
         .par_iter()
         .map(|&j0| {
             let n = SEARCH_BLOCK.min(items - j0);
@@ -440,13 +440,10 @@ pub fn search_errors_multi(
                     out[ti * n + j] = rel(n2, n2 - 2.0 * lin + quad);
                 }
             }
-            out
+            (n, out)
         })
         .collect();
-    let mut errors = join(
-        &mut starts.iter().map(|&j0| SEARCH_BLOCK.min(items - j0)),
-        blocks,
-    );
+    let mut errors = join(nt, blocks);
     let mut best: Vec<usize> = errors.iter().flat_map(|e| smallest(e, rescore)).collect();
     best.sort_unstable();
     best.dedup();
