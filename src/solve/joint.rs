@@ -285,9 +285,14 @@ pub fn search(
                     faer::Par::Seq,
                 );
                 let mut out = Vec::with_capacity(gs.len() * KEEP_PER_GEOMETRY * targets.len());
-                for ((ri, _, n2), twr) in targets.iter().zip(&twrs) {
+                for (ti, ((ri, _, n2), twr)) in targets.iter().zip(&twrs).enumerate() {
                     let vlt = Mat::<f64>::from_fn(ks, gs.len(), |a, i| -2.0 * dot(pgs[i][a], twr));
-                    let mut e = eq.clone();
+                    // The quadratic terms serve every rotation: the last one takes them.
+                    let mut e = if ti + 1 == targets.len() {
+                        std::mem::replace(&mut eq, Mat::new())
+                    } else {
+                        eq.clone()
+                    };
                     faer::linalg::matmul::matmul(
                         e.as_mut(),
                         faer::Accum::Add,

@@ -269,6 +269,9 @@ pub fn exact_values(
 
 /// Indices of the `n` smallest values (ties by index), ascending.
 pub fn smallest(errors: &[f64], n: usize) -> Vec<usize> {
+    if n <= SMALL_N && errors.len() > 4 * n {
+        return smallest_few(errors, n);
+    }
     let mut idx: Vec<usize> = (0..errors.len())
         .filter(|&i| errors[i].is_finite())
         .collect();
@@ -280,6 +283,34 @@ pub fn smallest(errors: &[f64], n: usize) -> Vec<usize> {
     }
     idx.sort_by(order);
     idx
+}
+
+/// Up to this many, [`smallest`] keeps a sorted list of the best so far, so that most values
+/// cost one comparison (the joint search takes the best 8 of every geometry's materials).
+const SMALL_N: usize = 32;
+
+/// [`smallest`] for small `n`: one pass, the best so far kept sorted; a value enters only if it
+/// beats the last kept (ties by index, and indices ascend, so an equal value never does).
+fn smallest_few(errors: &[f64], n: usize) -> Vec<usize> {
+    let mut best: Vec<(f64, usize)> = Vec::with_capacity(n + 1);
+    if n == 0 {
+        return Vec::new();
+    }
+    for (i, &e) in errors.iter().enumerate() {
+        if !e.is_finite() {
+            continue;
+        }
+        if best.len() == n {
+            match best.last() {
+                Some(&(last, _)) if e.total_cmp(&last).is_lt() => {}
+                _ => continue,
+            }
+        }
+        let at = best.partition_point(|&(v, _)| v.total_cmp(&e).is_le());
+        best.insert(at, (e, i));
+        best.truncate(n);
+    }
+    best.into_iter().map(|(_, i)| i).collect()
 }
 
 /// The first `n` distinct entries of `rankings` taken in turn (`r0[0]`, `r1[0]`, …, `r0[1]`,
@@ -561,6 +592,23 @@ mod tests {
         want.sort_by(|&a, &b| big[a].total_cmp(&big[b]).then(a.cmp(&b)));
         want.truncate(300);
         assert_eq!(smallest(&big, 300), want);
+        // The one-pass path for small n (many ties, signed zeros, NaN and infinities) gives what
+        // sorting every index gives.
+        let odd = [f64::NAN, f64::INFINITY, f64::NEG_INFINITY, -0.0, 0.0];
+        for seed in 0..20 {
+            let mut r = crate::rng::Rng::new(seed);
+            let v: Vec<f64> = (0..1040)
+                .map(|_| match r.below(40) {
+                    k @ 0..=4 => odd[k as usize],
+                    k => (k as f64) / 9.0 - 1.0,
+                })
+                .collect();
+            let mut all: Vec<usize> = (0..v.len()).filter(|&i| v[i].is_finite()).collect();
+            all.sort_by(|&a, &b| v[a].total_cmp(&v[b]).then(a.cmp(&b)));
+            for n in [1, 8, 32] {
+                assert_eq!(smallest(&v, n), all[..n], "seed {seed}, n {n}");
+            }
+        }
     }
 
     #[test]
