@@ -183,7 +183,6 @@ pub struct LightPairs {
     /// nearby block, instead of at random (the re-rank of a search reads thousands of records
     /// that are not in the processor's caches).
     order: Vec<usize>,
-    next: Vec<usize>,
 }
 
 impl LightPairs {
@@ -205,15 +204,10 @@ impl LightPairs {
             ),
             None => (usize::MAX, 0),
         });
-        let mut next = vec![usize::MAX; pairs.len()];
-        for w in order.windows(2) {
-            next[w[0]] = w[1];
-        }
         LightPairs {
             pairs,
             nodes,
             order,
-            next,
         }
     }
 }
@@ -234,11 +228,6 @@ impl LightLobes<'_> {
     /// The lobes at `at`'s pair `i`.
     #[inline]
     fn lobes_of(&self, at: &LightPairs, i: usize, p: &DirPair, out: &mut Vec<(f64, Vmf)>) {
-        if std::env::var_os("BISCALE_PF").is_some() {
-            if let Some(Some(n)) = at.next.get(i).and_then(|&j| at.nodes.get(j)) {
-                self.prefetch(n);
-            }
-        }
         match &at.nodes[i] {
             Some(n) => self.lobes_at(n, p.wi, p.wo, out),
             None => out.clear(),
@@ -251,30 +240,6 @@ impl LightLobes<'_> {
         crate::fast::FixedLobes::by(&at.pairs, Some(&at.order), self.clusters, |i, p, out| {
             self.lobes_of(at, i, p, out)
         })
-    }
-
-    #[inline]
-    fn prefetch(&self, n: &Node) {
-        #[cfg(target_arch = "x86_64")]
-        for &(b, vb) in &n.views {
-            if vb == 0.0 {
-                continue;
-            }
-            let nv = self.layout.views.len();
-            let seen = self.clusters * HEAD + b * self.clusters * 3;
-            let lit = self.clusters * (HEAD + nv * 3) + (n.light * nv + b) * self.clusters * STRIDE;
-            for (off, len) in [(seen, self.clusters * 3), (lit, self.clusters * STRIDE)] {
-                let block = &self.record[off..off + len];
-                for k in (0..len).step_by(16).chain(std::iter::once(len - 1)) {
-                    unsafe {
-                        std::arch::x86_64::_mm_prefetch(
-                            block.as_ptr().add(k) as *const i8,
-                            std::arch::x86_64::_MM_HINT_T0,
-                        )
-                    };
-                }
-            }
-        }
     }
 
     /// The lobes at a pair whose [`Node`] is `n`.
