@@ -410,7 +410,7 @@ impl Response {
                 let mut s = 0.0;
                 for &(o, w) in views {
                     if w != 0.0 {
-                        s += w * dot32(&buf[o..o + nb], &p.f);
+                        s += w * crate::fastmath::dot32(&buf[o..o + nb], &p.f);
                     }
                 }
                 s.max(0.0)
@@ -435,24 +435,6 @@ impl ColumnElement for half::f16 {
         use half::slice::HalfFloatSliceExt;
         src.convert_to_f32_slice(dst);
     }
-}
-
-/// A dot product in `f32` with eight partial sums (vectorised), returned as `f64`.
-fn dot32(a: &[f32], b: &[f32]) -> f64 {
-    let mut acc = [0f32; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let tail: f32 = ca
-        .remainder()
-        .iter()
-        .zip(cb.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (x, y) in ca.zip(cb) {
-        for i in 0..8 {
-            acc[i] += x[i] * y[i];
-        }
-    }
-    (acc.iter().sum::<f32>() + tail) as f64
 }
 
 #[cfg(test)]

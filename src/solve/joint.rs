@@ -286,7 +286,9 @@ pub fn search(
                 );
                 let mut out = Vec::with_capacity(gs.len() * KEEP_PER_GEOMETRY * targets.len());
                 for (ti, ((ri, _, n2), twr)) in targets.iter().zip(&twrs).enumerate() {
-                    let vlt = Mat::<f64>::from_fn(ks, gs.len(), |a, i| -2.0 * dot(pgs[i][a], twr));
+                    let vlt = Mat::<f64>::from_fn(ks, gs.len(), |a, i| {
+                        -2.0 * crate::fastmath::dot32(pgs[i][a], twr)
+                    });
                     // The quadratic terms serve every rotation: the last one takes them.
                     let mut e = if ti + 1 == targets.len() {
                         std::mem::replace(&mut eq, Mat::new())
@@ -420,20 +422,6 @@ fn upper_pair(ks: usize, j: usize) -> (usize, usize) {
         col += ks - a;
     }
     (ks - 1, ks - 1)
-}
-
-/// `a · b` in f32 with eight running sums (vectorises), returned in f64.
-fn dot(a: &[f32], b: &[f32]) -> f64 {
-    let mut acc = [0.0f32; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for l in 0..8 {
-            acc[l] += x[l] * y[l];
-        }
-    }
-    let tail: f32 = ra.iter().zip(rb).map(|(x, y)| x * y).sum();
-    (acc.iter().sum::<f32>() + tail) as f64
 }
 
 /// Scored pairs as solver candidates (colour: each material's best colour shift for the look).
