@@ -236,90 +236,93 @@ pub fn search(
             .step_by(GEOMETRY_BLOCK)
             .map(|g0| g0..(g0 + GEOMETRY_BLOCK).min(gitems))
             .collect();
+        // One block of geometries: every material's error for each, the best kept.
+        let scan_geometries = |gs: std::ops::Range<usize>| -> Vec<Pair> {
+            // P for the block's geometries at once, one column per geometry (so that each
+            // geometry's values are contiguous): rtᵀ · Xᵀ, (ks·d) × geometries.
+            let xt = Mat::from_fn(kr, gs.len(), |r, i| gx[(gs.start + i) * kr + r]);
+            let mut p = Mat::<f32>::zeros(ks * d, gs.len());
+            faer::linalg::matmul::matmul(
+                p.as_mut(),
+                faer::Accum::Replace,
+                rt.as_ref().transpose(),
+                xt.as_ref(),
+                1.0,
+                faer::Par::Seq,
+            );
+            // Each geometry's quadratic form in the materials' coordinates, as columns:
+            // [Q_ac (a <= c)] once, [-2 b_a] per rotation; then every material's error
+            // at once, Eᵀ = Uq Vqᵀ + Ul Vlᵀ + |t|², one contiguous column per geometry.
+            let pgs: Vec<Vec<&[f32]>> = (0..gs.len())
+                .map(|i| p.col_as_slice(i).chunks_exact(d).collect())
+                .collect();
+            // Each geometry's Gram matrix PᵢᵀPᵢ (its d × ks block), by faer's kernels.
+            let mut gram = Mat::<f32>::zeros(ks, ks);
+            let mut vqt = Mat::<f64>::zeros(nqq, gs.len());
+            for i in 0..gs.len() {
+                let pi = faer::MatRef::from_column_major_slice(p.col_as_slice(i), d, ks);
+                faer::linalg::matmul::matmul(
+                    gram.as_mut(),
+                    faer::Accum::Replace,
+                    pi.transpose(),
+                    pi,
+                    1.0,
+                    faer::Par::Seq,
+                );
+                for j in 0..nqq {
+                    let (a, c) = upper_pair(ks, j);
+                    vqt[(j, i)] = gram[(a, c)] as f64;
+                }
+            }
+            let mut eq = Mat::<f64>::zeros(materials.len(), gs.len());
+            faer::linalg::matmul::matmul(
+                eq.as_mut(),
+                faer::Accum::Replace,
+                uq.as_ref(),
+                vqt.as_ref(),
+                1.0,
+                faer::Par::Seq,
+            );
+            let mut out = Vec::with_capacity(gs.len() * KEEP_PER_GEOMETRY * targets.len());
+            for (ti, ((ri, _, n2), twr)) in targets.iter().zip(&twrs).enumerate() {
+                let vlt = Mat::<f64>::from_fn(ks, gs.len(), |a, i| {
+                    -2.0 * crate::fastmath::dot32(pgs[i][a], twr)
+                });
+                // The quadratic terms serve every rotation: the last one takes them.
+                let mut e = if ti + 1 == targets.len() {
+                    std::mem::replace(&mut eq, Mat::new())
+                } else {
+                    eq.clone()
+                };
+                faer::linalg::matmul::matmul(
+                    e.as_mut(),
+                    faer::Accum::Add,
+                    ul.as_ref(),
+                    vlt.as_ref(),
+                    1.0,
+                    faer::Par::Seq,
+                );
+                for (i, g) in gs.clone().enumerate() {
+                    // `|t - f|² - |t|²` ranks as the error does; the root only for the kept.
+                    let col = e.col_as_slice(i);
+                    out.extend(smallest(col, KEEP_PER_GEOMETRY).into_iter().map(|k| {
+                        let err = ((n2 + col[k]).max(0.0) / n2).sqrt();
+                        Pair {
+                            error: err,
+                            search_error: err,
+                            geometry: g,
+                            material: materials[k],
+                            rotation: *ri,
+                        }
+                    }));
+                }
+            }
+            out
+        };
+        // Subnormal products are flushed (`fastmath::without_subnormals`).
         let best: Vec<Vec<Pair>> = blocks
             .into_par_iter()
-            .map(|gs| {
-                // P for the block's geometries at once, one column per geometry (so that each
-                // geometry's values are contiguous): rtᵀ · Xᵀ, (ks·d) × geometries.
-                let xt = Mat::from_fn(kr, gs.len(), |r, i| gx[(gs.start + i) * kr + r]);
-                let mut p = Mat::<f32>::zeros(ks * d, gs.len());
-                faer::linalg::matmul::matmul(
-                    p.as_mut(),
-                    faer::Accum::Replace,
-                    rt.as_ref().transpose(),
-                    xt.as_ref(),
-                    1.0,
-                    faer::Par::Seq,
-                );
-                // Each geometry's quadratic form in the materials' coordinates, as columns:
-                // [Q_ac (a <= c)] once, [-2 b_a] per rotation; then every material's error
-                // at once, Eᵀ = Uq Vqᵀ + Ul Vlᵀ + |t|², one contiguous column per geometry.
-                let pgs: Vec<Vec<&[f32]>> = (0..gs.len())
-                    .map(|i| p.col_as_slice(i).chunks_exact(d).collect())
-                    .collect();
-                // Each geometry's Gram matrix PᵢᵀPᵢ (its d × ks block), by faer's kernels.
-                let mut gram = Mat::<f32>::zeros(ks, ks);
-                let mut vqt = Mat::<f64>::zeros(nqq, gs.len());
-                for i in 0..gs.len() {
-                    let pi = faer::MatRef::from_column_major_slice(p.col_as_slice(i), d, ks);
-                    faer::linalg::matmul::matmul(
-                        gram.as_mut(),
-                        faer::Accum::Replace,
-                        pi.transpose(),
-                        pi,
-                        1.0,
-                        faer::Par::Seq,
-                    );
-                    for j in 0..nqq {
-                        let (a, c) = upper_pair(ks, j);
-                        vqt[(j, i)] = gram[(a, c)] as f64;
-                    }
-                }
-                let mut eq = Mat::<f64>::zeros(materials.len(), gs.len());
-                faer::linalg::matmul::matmul(
-                    eq.as_mut(),
-                    faer::Accum::Replace,
-                    uq.as_ref(),
-                    vqt.as_ref(),
-                    1.0,
-                    faer::Par::Seq,
-                );
-                let mut out = Vec::with_capacity(gs.len() * KEEP_PER_GEOMETRY * targets.len());
-                for (ti, ((ri, _, n2), twr)) in targets.iter().zip(&twrs).enumerate() {
-                    let vlt = Mat::<f64>::from_fn(ks, gs.len(), |a, i| {
-                        -2.0 * crate::fastmath::dot32(pgs[i][a], twr)
-                    });
-                    // The quadratic terms serve every rotation: the last one takes them.
-                    let mut e = if ti + 1 == targets.len() {
-                        std::mem::replace(&mut eq, Mat::new())
-                    } else {
-                        eq.clone()
-                    };
-                    faer::linalg::matmul::matmul(
-                        e.as_mut(),
-                        faer::Accum::Add,
-                        ul.as_ref(),
-                        vlt.as_ref(),
-                        1.0,
-                        faer::Par::Seq,
-                    );
-                    for (i, g) in gs.clone().enumerate() {
-                        // `|t - f|² - |t|²` ranks as the error does; the root only for the kept.
-                        let col = e.col_as_slice(i);
-                        out.extend(smallest(col, KEEP_PER_GEOMETRY).into_iter().map(|k| {
-                            let err = ((n2 + col[k]).max(0.0) / n2).sqrt();
-                            Pair {
-                                error: err,
-                                search_error: err,
-                                geometry: g,
-                                material: materials[k],
-                                rotation: *ri,
-                            }
-                        }));
-                    }
-                }
-                out
-            })
+            .map(|gs| crate::fastmath::without_subnormals(|| scan_geometries(gs)))
             .collect();
         kept.extend(best.into_iter().flatten());
     }
