@@ -415,7 +415,7 @@ pub fn search_errors_multi(
     // reconstruction per item serves all targets.
     let clamped = |ids: &[usize]| -> Vec<Vec<f64>> {
         let blocks: Vec<(usize, Vec<f64>)> = ids
-            .par_chunks(SEARCH_BLOCK)
+            .par_chunks(RESCORE_BLOCK)
             .map(|chunk| {
                 let n = chunk.len();
                 let xm = Mat::<f64>::from_fn(c, n, |k, j| x[chunk[j] * c + k] as f64);
@@ -504,6 +504,11 @@ pub fn rescore_share(searches: usize, pool: usize) -> usize {
 
 /// Items per block of the compressed search.
 pub const SEARCH_BLOCK: usize = 4096;
+
+/// Items per block of the clamped rescoring: a block's reconstruction (`samples × block` f64,
+/// 1 MB at 490 samples) stays in the processor's cache between the product that writes it and
+/// the error loop that reads it; at [`SEARCH_BLOCK`] it was 16 MB.
+pub const RESCORE_BLOCK: usize = 256;
 
 /// Rotation `i` of `psi` in radians.
 pub fn psi_angle(i: usize, psi: usize) -> f64 {
