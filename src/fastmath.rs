@@ -16,11 +16,21 @@ use std::f64::consts::{FRAC_PI_2, FRAC_PI_4, PI};
 /// unwinding; elsewhere `f` runs unchanged). For the searches' `f32` products: `paper4` has CX
 /// weights down to 1e-20 and Gram cross terms below 1e-30 (two representatives bright at
 /// different samples), whose products are subnormal, and this machine's processor computes
-/// each of those about 50× slower than a normal product. On `paper4` the scan with the light-lobe weights took 23–50 ms per block of
-/// 4096 items instead of 1–3 ms (timed with a temporary print in `biscale validate --library
-/// outputs/lib-paper4 --cases 3 --library-targets --solvers geometry --no-exhaustive`), and the
-/// slowdown came and went with the data. Values below 1.2e-38 are far below the `f32` rounding
-/// of the sums they enter; nothing stored is computed under this.
+/// each of those about 50× slower than a normal product. On `paper4` the scan with the
+/// light-lobe weights took 23–50 ms per block of 4096 items instead of 1–3 ms (timed with a
+/// temporary print in `biscale validate --library outputs/lib-paper4 --cases 3
+/// --library-targets --solvers geometry --no-exhaustive`), and the slowdown came and went with
+/// the data. Values below 1.2e-38 are far below the `f32` rounding of the sums they enter;
+/// nothing stored is computed under this.
+///
+/// Rust's documentation of `_mm_setcsr` calls a changed DAZ mode undefined behaviour: the
+/// compiler assumes IEEE's default floating-point environment, so code compiled under that
+/// assumption may see subnormals flushed where it expected them kept (constant folding, moved
+/// operations). Only the closures given here run under it; they compute scores from which
+/// nothing but rankings follow, with no floating-point value deciding a memory access, and
+/// their answers were compared with the unflushed ones (docs/solvers.md). Flush-to-zero alone,
+/// or the Gram matrix's subnormal entries zeroed, left the scans slow; the Gram product in
+/// `f64`, which has no subnormals at these magnitudes, made the search slower still.
 #[inline]
 pub fn without_subnormals<T>(f: impl FnOnce() -> T) -> T {
     #[cfg(target_arch = "x86_64")]
