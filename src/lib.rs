@@ -10,6 +10,7 @@
 pub mod cpu;
 pub mod error;
 pub mod fastmath;
+pub mod prefetch;
 pub mod frame;
 pub mod rng;
 

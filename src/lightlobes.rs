@@ -183,6 +183,9 @@ pub struct LightPairs {
     /// nearby block, instead of at random (the re-rank of a search reads thousands of records
     /// that are not in the processor's caches).
     order: Vec<usize>,
+    /// The pair visited after each pair in `order` (none after the last): while one pair's
+    /// lobes are assembled, the next one's blocks are prefetched.
+    next: Vec<Option<usize>>,
 }
 
 impl LightPairs {
@@ -204,10 +207,15 @@ impl LightPairs {
             ),
             None => (usize::MAX, 0),
         });
+        let mut next = vec![None; pairs.len()];
+        for w in order.windows(2) {
+            next[w[0]] = Some(w[1]);
+        }
         LightPairs {
             pairs,
             nodes,
             order,
+            next,
         }
     }
 }
@@ -228,9 +236,27 @@ impl LightLobes<'_> {
     /// The lobes at `at`'s pair `i`.
     #[inline]
     fn lobes_of(&self, at: &LightPairs, i: usize, p: &DirPair, out: &mut Vec<(f64, Vmf)>) {
+        if let Some(Some(n)) = at.next[i].map(|j| &at.nodes[j]) {
+            self.prefetch(n);
+        }
         match &at.nodes[i] {
             Some(n) => self.lobes_at(n, p.wi, p.wo, out),
             None => out.clear(),
+        }
+    }
+
+    /// Start loading the blocks [`Self::lobes_at`] reads at `n` (a hint; changes nothing).
+    /// A search's re-rank reads a few blocks of each of thousands of records that are in no
+    /// cache; with the next pair's blocks on their way while this pair's lobes are
+    /// assembled, the two overlap.
+    #[inline]
+    fn prefetch(&self, n: &Node) {
+        for &(b, vb) in &n.views {
+            if vb != 0.0 {
+                let off = self.clusters * HEAD + b * self.clusters * 3;
+                crate::prefetch::read(&self.record[off..off + self.clusters * 3]);
+                crate::prefetch::read(self.lit_block(n.light, b));
+            }
         }
     }
 
