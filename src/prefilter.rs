@@ -431,24 +431,17 @@ pub fn prepare(
         .collect()
 }
 
-/// Lobes whose table coordinates [`coords_lanes`] finds together.
+/// Lobes whose table coordinates are found together ([`coords_soa`]).
 pub const LANES: usize = 8;
 
-/// The table coordinates of up to [`LANES`] lobes of one pair (half-vector frame `f`), lane by
-/// lane in branch-free loops that the compiler runs in vector registers: equal bit for bit to
-/// [`local_coords`] of each lobe (the same operations in the same order; the branches become
-/// selects). Finding them one lobe at a time was a long chain of dependent scalar operations
-/// per lobe (`ln_1p`, `acos`, `atan2`, a search over the `kappa` nodes): a quarter of a
-/// geometry solve's processor time (`perf record` of `biscale validate … --solvers geometry`).
-/// Entries past `lobes.len()` are meaningless.
+/// The table coordinates of up to [`LANES`] lobes of one pair (half-vector frame `f`), found
+/// together by [`coords_soa`]. Entries past `lobes.len()` are meaningless.
 fn coords_lanes(
     cfg: &PrefilterConfig,
     f: (Vec3, Vec3, Vec3, f64),
     lobes: &[(f64, Vmf)],
 ) -> [TableCoords; LANES] {
     let (x, y, h, th) = f;
-    let (nh, nk, nt, np) = (cfg.n_half, KAPPAS.len(), cfg.n_theta_mu, cfg.n_phi_mu);
-    let lkn = &*LN_KAPPAS;
     // Unused lanes hold kappa 0 and mu 0.
     let (mut kap, mut mx, mut my, mut mz) = ([0.0; LANES], [0.0; LANES], [0.0; LANES], [0.0; LANES]);
     for (k, (_, l)) in lobes.iter().take(LANES).enumerate() {
@@ -457,13 +450,40 @@ fn coords_lanes(
         my[k] = l.mu.dot(y).abs();
         mz[k] = l.mu.dot(h);
     }
+    coords_soa(cfg, th, &kap, [&mx, &my, &mz])
+}
+
+/// The coordinates of half angle `th`, `kappa` and unit `mu` (half-vector frame).
+fn local_coords(cfg: &PrefilterConfig, th: f64, kappa: f64, mu: Vec3) -> TableCoords {
+    let lane = |v: f64| std::array::from_fn(|k| if k == 0 { v } else { 0.0 });
+    coords_soa(cfg, th, &lane(kappa), [&lane(mu.x), &lane(mu.y), &lane(mu.z)])[0]
+}
+
+/// The table coordinates at half angle `th` of [`LANES`] lobes given by their `kappa` and the
+/// components `mu = [x, y, z]` of their unit directions in the half-vector frame, lane by lane
+/// in branch-free loops that the compiler runs in vector registers (`fastmath::ln_1p_select`;
+/// the `kappa` node is a count of the nodes below; the floors of clamped, non-negative
+/// coordinates are truncations). Found one lobe at a time, with branches, each lobe was a long
+/// chain of dependent scalar operations (`ln_1p`, `acos`, `atan2`, a search over the `kappa`
+/// nodes): a quarter of a geometry solve's processor time (`perf record` of `biscale validate …
+/// --solvers geometry`). The values are the same bit for bit (the same operations in the same
+/// order; tests).
+fn coords_soa(
+    cfg: &PrefilterConfig,
+    th: f64,
+    kap: &[f64; LANES],
+    mu: [&[f64; LANES]; 3],
+) -> [TableCoords; LANES] {
+    let (nh, nk, nt, np) = (cfg.n_half, KAPPAS.len(), cfg.n_theta_mu, cfg.n_phi_mu);
+    let lkn = &*LN_KAPPAS;
+    let [mx, my, mz] = mu;
     let fh = (th / FRAC_PI_2 * (nh - 1) as f64).clamp(0.0, (nh - 1) as f64);
     let (ih, wh) = split_lane(fh, nh);
     let mut lk = [0.0; LANES];
     for k in 0..LANES {
         lk[k] = crate::fastmath::ln_1p_select(kap[k].clamp(0.0, KAPPA_MAX));
     }
-    // The last node below (`local_coords`' search, as a count: the nodes increase).
+    // The last node at or below `lk` (at most the last but one), counted: the nodes increase.
     let mut ik = [0usize; LANES];
     for &node in &lkn[1..nk - 1] {
         for k in 0..LANES {
@@ -474,7 +494,7 @@ fn coords_lanes(
     for k in 0..LANES {
         let tm = crate::fastmath::acos(mz[k]);
         ft[k] = ((tm / PI).sqrt() * (nt - 1) as f64).clamp(0.0, (nt - 1) as f64);
-        let pm = crate::fastmath::atan2_upper_select(my[k].abs(), mx[k]);
+        let pm = crate::fastmath::atan2_upper(my[k].abs(), mx[k]);
         fp[k] = (pm / PI * (np - 1) as f64).clamp(0.0, (np - 1) as f64);
     }
     std::array::from_fn(|k| {
@@ -496,7 +516,7 @@ fn coords_lanes(
 }
 
 /// The lower node and the weight of the upper one for a coordinate `f` clamped to `[0, n - 1]`
-/// (or NaN: node 0, weight NaN), as `local_coords` splits it: `floor` is a truncation there.
+/// (NaN: node 0, weight NaN): the floor of a non-negative number is its truncation.
 #[inline]
 fn split_lane(f: f64, n: usize) -> (usize, f64) {
     let i = (f as i32 as usize).min(n - 2);
@@ -506,40 +526,6 @@ fn split_lane(f: f64, n: usize) -> (usize, f64) {
 /// `ln(1 + kappa)` at the kappa nodes.
 static LN_KAPPAS: std::sync::LazyLock<Vec<f64>> =
     std::sync::LazyLock::new(|| KAPPAS.iter().map(|k| k.ln_1p()).collect());
-
-/// The coordinates of half angle `th`, `kappa` and unit `mu` (half-vector frame).
-fn local_coords(cfg: &PrefilterConfig, th: f64, kappa: f64, mu: Vec3) -> TableCoords {
-    let (nh, nk, nt, np) = (cfg.n_half, KAPPAS.len(), cfg.n_theta_mu, cfg.n_phi_mu);
-    let lkn = &*LN_KAPPAS;
-    let fh = (th / FRAC_PI_2 * (nh - 1) as f64).clamp(0.0, (nh - 1) as f64);
-    let lk = crate::fastmath::ln_1p(kappa.clamp(0.0, KAPPA_MAX));
-    let mut ik = 0;
-    while ik + 2 < nk && lk >= lkn[ik + 1] {
-        ik += 1;
-    }
-    let wk = ((lk - lkn[ik]) / (lkn[ik + 1] - lkn[ik])).clamp(0.0, 1.0);
-    let tm = crate::fastmath::acos(mu.z);
-    let ft = ((tm / PI).sqrt() * (nt - 1) as f64).clamp(0.0, (nt - 1) as f64);
-    let pm = crate::fastmath::atan2_upper(mu.y.abs(), mu.x);
-    let fp = (pm / PI * (np - 1) as f64).clamp(0.0, (np - 1) as f64);
-    let split = |f: f64, n: usize| {
-        let i = (crate::fastmath::floor(f) as usize).min(n - 2);
-        (i, f - i as f64)
-    };
-    let (ih, wh) = split(fh, nh);
-    let (it, wt) = split(ft, nt);
-    let (ip, wp) = split(fp, np);
-    TableCoords {
-        ih,
-        ik,
-        it,
-        ip,
-        wh,
-        wk,
-        wt,
-        wp,
-    }
-}
 
 #[cfg(test)]
 mod tests {
@@ -592,6 +578,35 @@ mod tests {
         }
     }
 
+    /// The coordinates of one lobe as they were found before `coords_soa`: with branches, one
+    /// operation after another. `(node, weight)` per axis: half angle, kappa, `θ_mu`, `φ_mu`.
+    fn one_lobe_reference(
+        cfg: &PrefilterConfig,
+        th: f64,
+        kappa: f64,
+        mu: Vec3,
+    ) -> [(usize, f64); 4] {
+        let (nh, nk, nt, np) = (cfg.n_half, KAPPAS.len(), cfg.n_theta_mu, cfg.n_phi_mu);
+        let lkn = &*LN_KAPPAS;
+        let split = |f: f64, n: usize| {
+            let i = (crate::fastmath::floor(f) as usize).min(n - 2);
+            (i, f - i as f64)
+        };
+        let lk = crate::fastmath::ln_1p(kappa.clamp(0.0, KAPPA_MAX));
+        let mut ik = 0;
+        while ik + 2 < nk && lk >= lkn[ik + 1] {
+            ik += 1;
+        }
+        let tm = crate::fastmath::acos(mu.z);
+        let pm = crate::fastmath::atan2_upper(mu.y.abs(), mu.x);
+        [
+            split((th / FRAC_PI_2 * (nh - 1) as f64).clamp(0.0, (nh - 1) as f64), nh),
+            (ik, ((lk - lkn[ik]) / (lkn[ik + 1] - lkn[ik])).clamp(0.0, 1.0)),
+            split(((tm / PI).sqrt() * (nt - 1) as f64).clamp(0.0, (nt - 1) as f64), nt),
+            split((pm / PI * (np - 1) as f64).clamp(0.0, (np - 1) as f64), np),
+        ]
+    }
+
     #[test]
     fn coordinates_found_in_lanes_equal_those_found_one_lobe_at_a_time() {
         let cfg = PrefilterConfig::default();
@@ -618,7 +633,12 @@ mod tests {
                     let got = coords_lanes(&cfg, f, chunk);
                     for (k, (_, l)) in chunk.iter().enumerate() {
                         let mu = Vec3::new(l.mu.dot(x), l.mu.dot(y).abs(), l.mu.dot(h));
-                        assert_eq!(got[k], local_coords(&cfg, th, l.kappa, mu), "{l:?}");
+                        let c = &got[k];
+                        let lanes = [(c.ih, c.wh), (c.ik, c.wk), (c.it, c.wt), (c.ip, c.wp)];
+                        let want = one_lobe_reference(&cfg, th, l.kappa, mu);
+                        let bits = |a: [(usize, f64); 4]| a.map(|(i, w)| (i, w.to_bits()));
+                        assert_eq!(bits(lanes), bits(want), "{l:?}");
+                        assert_eq!(*c, local_coords(&cfg, th, l.kappa, mu));
                     }
                 }
             }
