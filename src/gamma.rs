@@ -383,15 +383,18 @@ impl Response {
     /// each pair is up to four dot products over the normal nodes.
     pub fn apply<T: ColumnElement>(&self, col: &[T]) -> Vec<f64> {
         let nb = self.nb;
-        let mut slot = std::collections::HashMap::new();
+        // Where each row block's `f32` copy starts in `buf` (`usize::MAX`: not converted yet),
+        // indexed by block: a table, not a hash map (hashing was most of this function's time).
+        let mut slot = vec![usize::MAX; col.len() / nb.max(1)];
         let mut buf: Vec<f32> = Vec::new();
         let mut block = |blk: usize, buf: &mut Vec<f32>| -> usize {
-            *slot.entry(blk).or_insert_with(|| {
+            if slot[blk] == usize::MAX {
                 let at = buf.len();
                 buf.resize(at + nb, 0.0);
                 T::to_f32s(&col[blk * nb..(blk + 1) * nb], &mut buf[at..]);
-                at
-            })
+                slot[blk] = at;
+            }
+            slot[blk]
         };
         let mut at = Vec::with_capacity(self.pairs.len());
         for p in &self.pairs {
