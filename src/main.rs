@@ -161,7 +161,8 @@ enum Cmd {
         /// by their binned columns (the pool then comes from the light-lobe rankings: X and, when the library has them, the weights refitted to the light lobes).
         #[arg(long)]
         lobes_search_only: bool,
-        /// General solver: starts and iterations per start.
+        /// General solver: starts (plus one from the first start's material sharpened, run
+        /// only when no start came within --stop-below) and iterations per start.
         #[arg(long, default_value_t = 5)]
         starts: usize,
         #[arg(long, default_value_t = 4)]
@@ -229,6 +230,8 @@ enum Cmd {
         lobes_search_only: bool,
         #[arg(long, default_value_t = 3)]
         k: usize,
+        /// General solver: starts (plus one from the first start's material sharpened, run
+        /// only when no start came within --stop-below).
         #[arg(long, default_value_t = 3)]
         starts: usize,
         /// General solver: geometries of each geometry solve that get a material solve.

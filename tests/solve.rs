@@ -437,6 +437,40 @@ fn general_solver_answers_are_distinct_combinations() {
     }
 }
 
+/// When no start comes within `stop_below`, one more start follows the asked ones: the
+/// library material closest to the first start's material sharpened (a glossy material on a
+/// rough geometry is otherwise answered with a rougher one on a smoother geometry).
+#[test]
+fn general_solver_adds_a_sharper_start_only_when_no_start_succeeds() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let mats = lib.material_items().unwrap();
+    // A GGX material without a Lambertian lobe (the first start).
+    let rough = mats
+        .iter()
+        .position(|m| m.spec.starts_with("ggx:") && !m.spec.contains("lambert"))
+        .unwrap();
+    let look = combo(&lib, 10, rough);
+    let (opt, g) = small_general(3, 16, 1, 2);
+    let run = |stop_below: f64| {
+        let g = biscale::solve::general::GeneralOptions {
+            stop_below,
+            joint_pool: 0,
+            start_material: Some(rough),
+            ..g.clone()
+        };
+        biscale::solve::general::explore(&lib, &look, &opt, &g).unwrap().1
+    };
+    let st = run(0.0);
+    let sharp: Vec<&String> = st.notes.iter().filter(|n| n.contains("sharpened")).collect();
+    assert_eq!(sharp.len(), 1, "{:?}", st.notes);
+    assert!(sharp[0].starts_with("start 2:"), "after the 2 asked starts: {:?}", st.notes);
+    let same = format!("start 2: {}, ", mats[rough].spec);
+    assert!(!sharp[0].starts_with(&same), "a different material: {:?}", st.notes);
+    // A start that succeeds ends the search before it.
+    let st = run(1.0);
+    assert!(!st.notes.iter().any(|n| n.contains("sharpened")), "{:?}", st.notes);
+}
+
 /// The stopping rule: a combination within `stop_below` after the joint search ends the
 /// search there (no start is run); 0 runs every start.
 #[test]

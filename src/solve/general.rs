@@ -1,9 +1,10 @@
 //! The general solver (Sec. 4.3): geometry and material both unknown. From a start (a given
-//! material, else the library material closest to the look on a flat patch, then seeded random
-//! materials), alternate the material-fixed geometry solve and the geometry-fixed
-//! material solve, each returning its best, until a (geometry, rotation, material) repeats or the
-//! iteration limit; several starts; the best distinct combinations of all starts are evaluated
-//! with the final evaluator.
+//! material, the materials of the joint search's best pairs, the library material closest to
+//! the look on a flat patch, then seeded random materials; and, after those, a sharper version
+//! of the first start, [`sharper_material`]), alternate the material-fixed geometry solve and the
+//! geometry-fixed material solve, each returning its best, until a (geometry, rotation,
+//! material) repeats or the iteration limit; several starts; the best distinct combinations of
+//! all starts are evaluated with the final evaluator.
 
 use super::{
     exact_values, library_heightfield, Candidate, Final, Look, SolveOptions, SolveResult,
@@ -98,7 +99,9 @@ pub fn explore(
     let mut rep_pairs = None;
     // Starts: the given material; then the materials of the best pairs of the joint search;
     // then the material that best reproduces the look on a flat patch (the material solver on
-    // a flat heightfield: the look as a plain BRDF); then seeded random materials.
+    // a flat heightfield: the look as a plain BRDF); then seeded random materials; then, one
+    // beyond `starts`, the library material closest to the first start sharpened, which runs
+    // only when no earlier start came within `stop_below`.
     let starts = g.starts.max(1);
     let mut start_mats: Vec<usize> = g
         .start_material
@@ -154,6 +157,15 @@ pub fn explore(
     while !stopped && start_mats.len() < starts {
         start_mats.push(rng.below(mats.len() as u64) as usize);
     }
+    let mut sharp_index = None;
+    if let Some(&first) = start_mats.first().filter(|_| !stopped) {
+        let (sharp, st) = sharper_material(lib, &mats[first].spec, &inner)?;
+        accumulate(&mut stats, &st);
+        if let Some(m) = sharp.filter(|m| !start_mats.contains(m)) {
+            start_mats.push(m);
+            sharp_index = Some(start_mats.len() - 1);
+        }
+    }
     // Solves are deterministic, so one already run (another start reaching the same material,
     // or the same geometry and rotation) is read back instead of repeated.
     let mut geometry_solves: HashMap<usize, Vec<Candidate>> = HashMap::new();
@@ -165,6 +177,13 @@ pub fn explore(
                 100.0 * g.stop_below
             ));
             break;
+        }
+        if sharp_index == Some(s) {
+            stats.notes.push(format!(
+                "start {s}: {}, the library material closest to the first start's sharpened \
+                 (lobe widths x {SHARPEN})",
+                mats[m0].spec
+            ));
         }
         let mut m = m0;
         let mut last: Option<(usize, i64, usize)> = None;
@@ -245,6 +264,30 @@ pub fn explore(
         }
     }
     Ok((uniq, stats))
+}
+
+/// How much [`sharper_material`] narrows a start material's highlight (the angular edit of
+/// Sec. 7: lobe widths times 0.4).
+pub const SHARPEN: f64 = 0.4;
+
+/// The library material closest, on a flat patch, to `spec` (an analytic material: defined at
+/// every pair) with its highlight narrowed by [`SHARPEN`]: a start for the alternation that
+/// leaves the blur to the geometry. From a material rougher than the look's own, the
+/// alternation finds smooth geometries and stays there: a glossy material on a rough geometry
+/// was answered with a rougher material of the same family on a smoother one
+/// (`docs/solvers.md`).
+fn sharper_material(
+    lib: &Library,
+    spec: &str,
+    opt: &SolveOptions,
+) -> Result<(Option<usize>, SolveStats)> {
+    let edits = super::look::Edits {
+        blur: [SHARPEN, SHARPEN],
+        ..Default::default()
+    };
+    let look = Look::from_spec(spec, edits, None)?;
+    let (best, st) = super::material::closest_on_flat_patch(lib, &look, 1, opt)?;
+    Ok((best.first().copied(), st))
 }
 
 fn accumulate(s: &mut SolveStats, o: &SolveStats) {
