@@ -159,11 +159,17 @@ pub fn explore(
     }
     let mut sharp_index = None;
     if let Some(&first) = start_mats.first().filter(|_| !stopped) {
-        let (sharp, st) = sharper_material(lib, &mats[first].spec, &inner)?;
-        accumulate(&mut stats, &st);
-        if let Some(m) = sharp.filter(|m| !start_mats.contains(m)) {
-            start_mats.push(m);
-            sharp_index = Some(start_mats.len() - 1);
+        // Optional: a material whose sharpened look cannot be made (a MERL file that is gone
+        // since the build) leaves the starts as they are, and the log says why.
+        match sharper_material(lib, &mats[first].spec, &inner) {
+            Ok((sharp, st)) => {
+                accumulate(&mut stats, &st);
+                if let Some(m) = sharp.filter(|m| !start_mats.contains(m)) {
+                    start_mats.push(m);
+                    sharp_index = Some(start_mats.len() - 1);
+                }
+            }
+            Err(e) => stats.notes.push(format!("no sharper start: {e}")),
         }
     }
     // Solves are deterministic, so one already run (another start reaching the same material,
