@@ -10,8 +10,8 @@
 pub mod cpu;
 pub mod error;
 pub mod fastmath;
-pub mod prefetch;
 pub mod frame;
+pub mod prefetch;
 pub mod rng;
 
 // Small-scale materials and large-scale targets.

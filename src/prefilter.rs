@@ -443,7 +443,8 @@ fn coords_lanes(
 ) -> [TableCoords; LANES] {
     let (x, y, h, th) = f;
     // Unused lanes hold kappa 0 and mu 0.
-    let (mut kap, mut mx, mut my, mut mz) = ([0.0; LANES], [0.0; LANES], [0.0; LANES], [0.0; LANES]);
+    let (mut kap, mut mx, mut my, mut mz) =
+        ([0.0; LANES], [0.0; LANES], [0.0; LANES], [0.0; LANES]);
     for (k, (_, l)) in lobes.iter().take(LANES).enumerate() {
         kap[k] = l.kappa;
         mx[k] = l.mu.dot(x);
@@ -456,7 +457,12 @@ fn coords_lanes(
 /// The coordinates of half angle `th`, `kappa` and unit `mu` (half-vector frame).
 fn local_coords(cfg: &PrefilterConfig, th: f64, kappa: f64, mu: Vec3) -> TableCoords {
     let lane = |v: f64| std::array::from_fn(|k| if k == 0 { v } else { 0.0 });
-    coords_soa(cfg, th, &lane(kappa), [&lane(mu.x), &lane(mu.y), &lane(mu.z)])[0]
+    coords_soa(
+        cfg,
+        th,
+        &lane(kappa),
+        [&lane(mu.x), &lane(mu.y), &lane(mu.z)],
+    )[0]
 }
 
 /// The table coordinates at half angle `th` of [`LANES`] lobes given by their `kappa` and the
@@ -600,9 +606,18 @@ mod tests {
         let tm = crate::fastmath::acos(mu.z);
         let pm = crate::fastmath::atan2_upper(mu.y.abs(), mu.x);
         [
-            split((th / FRAC_PI_2 * (nh - 1) as f64).clamp(0.0, (nh - 1) as f64), nh),
-            (ik, ((lk - lkn[ik]) / (lkn[ik + 1] - lkn[ik])).clamp(0.0, 1.0)),
-            split(((tm / PI).sqrt() * (nt - 1) as f64).clamp(0.0, (nt - 1) as f64), nt),
+            split(
+                (th / FRAC_PI_2 * (nh - 1) as f64).clamp(0.0, (nh - 1) as f64),
+                nh,
+            ),
+            (
+                ik,
+                ((lk - lkn[ik]) / (lkn[ik + 1] - lkn[ik])).clamp(0.0, 1.0),
+            ),
+            split(
+                ((tm / PI).sqrt() * (nt - 1) as f64).clamp(0.0, (nt - 1) as f64),
+                nt,
+            ),
             split((pm / PI * (np - 1) as f64).clamp(0.0, (np - 1) as f64), np),
         ]
     }
@@ -620,14 +635,23 @@ mod tests {
             }
         };
         // Kappas from 0 through the nodes' range to the cap, and beyond it.
-        let kappas = [0.0, 1e-9, 5e-5, 1e-4, 0.25, 0.3, 1.0, 7.5, 4096.0, 3e4, 1e6, KAPPA_MAX, 1e9];
+        let kappas = [
+            0.0, 1e-9, 5e-5, 1e-4, 0.25, 0.3, 1.0, 7.5, 4096.0, 3e4, 1e6, KAPPA_MAX, 1e9,
+        ];
         for n in [1usize, 3, 8, 9, 16, 17, 32] {
             for _ in 0..50 {
                 let (wi, wo) = (dir(true), dir(true));
                 let lobes: Vec<(f64, Vmf)> = (0..n)
-                    .map(|i| (1.0, Vmf::new(kappas[(i * 5 + n) % kappas.len()], dir(false))))
+                    .map(|i| {
+                        (
+                            1.0,
+                            Vmf::new(kappas[(i * 5 + n) % kappas.len()], dir(false)),
+                        )
+                    })
                     .collect();
-                let Some(f) = half_frame(wi, wo) else { continue };
+                let Some(f) = half_frame(wi, wo) else {
+                    continue;
+                };
                 let (x, y, h, th) = f;
                 for chunk in lobes.chunks(LANES) {
                     let got = coords_lanes(&cfg, f, chunk);

@@ -458,17 +458,35 @@ fn general_solver_adds_a_sharper_start_only_when_no_start_succeeds() {
             start_material: Some(rough),
             ..g.clone()
         };
-        biscale::solve::general::explore(&lib, &look, &opt, &g).unwrap().1
+        biscale::solve::general::explore(&lib, &look, &opt, &g)
+            .unwrap()
+            .1
     };
     let st = run(0.0);
-    let sharp: Vec<&String> = st.notes.iter().filter(|n| n.contains("sharpened")).collect();
+    let sharp: Vec<&String> = st
+        .notes
+        .iter()
+        .filter(|n| n.contains("sharpened"))
+        .collect();
     assert_eq!(sharp.len(), 1, "{:?}", st.notes);
-    assert!(sharp[0].starts_with("start 2:"), "after the 2 asked starts: {:?}", st.notes);
+    assert!(
+        sharp[0].starts_with("start 2:"),
+        "after the 2 asked starts: {:?}",
+        st.notes
+    );
     let same = format!("start 2: {}, ", mats[rough].spec);
-    assert!(!sharp[0].starts_with(&same), "a different material: {:?}", st.notes);
+    assert!(
+        !sharp[0].starts_with(&same),
+        "a different material: {:?}",
+        st.notes
+    );
     // A start that succeeds ends the search before it.
     let st = run(1.0);
-    assert!(!st.notes.iter().any(|n| n.contains("sharpened")), "{:?}", st.notes);
+    assert!(
+        !st.notes.iter().any(|n| n.contains("sharpened")),
+        "{:?}",
+        st.notes
+    );
 }
 
 /// The stopping rule: a combination within `stop_below` after the joint search ends the
