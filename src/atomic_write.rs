@@ -154,11 +154,11 @@ pub fn write_with(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testdir::TestDir;
 
     #[test]
     fn failed_write_leaves_nothing() {
-        let dir = std::env::temp_dir().join(format!("biscale-aw-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = TestDir::new("aw");
         let p = dir.join("out.csv");
         let r = write_with(&p, |w| {
             w.write_all(b"partial")?;
@@ -169,7 +169,6 @@ mod tests {
         assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0);
         write_bytes(&p, b"ok").unwrap();
         assert_eq!(std::fs::read(&p).unwrap(), b"ok");
-        std::fs::remove_dir_all(&dir).ok();
     }
 
     #[test]
@@ -193,8 +192,9 @@ mod tests {
 
     #[test]
     fn exactly_one_of_simultaneous_exclusive_creators_wins() {
-        let dir = std::env::temp_dir().join(format!("biscale-aw-excl-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
+        let tmp = TestDir::new("aw-excl");
+        // Not made here: the creators make it.
+        let dir = tmp.join("d");
         let p = dir.join("profile.toml");
         let wins: Vec<(u8, bool)> = std::thread::scope(|s| {
             let hs: Vec<_> = (0..8u8)
@@ -215,14 +215,11 @@ mod tests {
             1,
             "temporary files left"
         );
-        std::fs::remove_dir_all(&dir).ok();
     }
 
     #[test]
     fn concurrent_writers_to_one_path_never_share_a_temporary_file() {
-        let dir = std::env::temp_dir().join(format!("biscale-aw-conc-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = TestDir::new("aw-conc");
         let p = dir.join("profile.toml");
         std::thread::scope(|s| {
             for t in 0..8u8 {
@@ -239,6 +236,5 @@ mod tests {
         assert!(got.iter().all(|&b| b == got[0]), "a file mixed two writers");
         // Only the destination is left.
         assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
-        std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -213,25 +213,12 @@ pub fn write_png16(path: &Path, hf: &Heightfield) -> Result<(f64, f64)> {
 mod tests {
     use super::*;
     use crate::npy::write_npy_f64;
-
-    struct TmpDir(std::path::PathBuf);
-    impl TmpDir {
-        fn new(tag: &str) -> Self {
-            let d = std::env::temp_dir().join(format!("biscale_hmio_{tag}_{}", std::process::id()));
-            std::fs::create_dir_all(&d).unwrap();
-            TmpDir(d)
-        }
-    }
-    impl Drop for TmpDir {
-        fn drop(&mut self) {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
-    }
+    use crate::testdir::TestDir;
 
     #[test]
     fn npy_units() {
-        let d = TmpDir::new("npy");
-        let p = d.0.join("h.npy");
+        let d = TestDir::new("hmio-npy");
+        let p = d.join("h.npy");
         // 2 rows × 4 columns, stored heights 0..0.7
         let data: Vec<f64> = (0..8).map(|i| i as f64 * 0.1).collect();
         write_npy_f64(&p, 2, 4, &data).unwrap();
@@ -255,33 +242,33 @@ mod tests {
 
     #[test]
     fn png_8_and_16_bit() {
-        let d = TmpDir::new("png");
-        let p8 = d.0.join("a8.png");
+        let d = TestDir::new("hmio-png");
+        let p8 = d.join("a8.png");
         image::GrayImage::from_fn(4, 3, |x, y| Luma([(x * 50 + y) as u8]))
             .save(&p8)
             .unwrap();
         let hf = load_heightmap(&p8, 4.0, 1.0).unwrap();
         assert_eq!((hf.width(), hf.height(), hf.cell_mm), (4, 3, 1.0));
         assert!((hf.at(3, 2) - 152.0 / 255.0).abs() < 1e-12);
-        let p16 = d.0.join("a16.png");
+        let p16 = d.join("a16.png");
         let b: ImageBuffer<Luma<u16>, Vec<u16>> =
             ImageBuffer::from_fn(3, 2, |x, y| Luma([(x * 30000 + y) as u16]));
         b.save(&p16).unwrap();
         let hf = load_heightmap(&p16, 1.5, 1.0).unwrap();
         assert!((hf.at(2, 1) - 60001.0 / 65535.0 / 0.5).abs() < 1e-12);
-        let prgb = d.0.join("rgb.png");
+        let prgb = d.join("rgb.png");
         image::RgbImage::new(3, 3).save(&prgb).unwrap();
         let e = load_heightmap(&prgb, 1.0, 1.0).unwrap_err().to_string();
         assert!(e.contains("rgb.png") && e.contains("grey"), "{e}");
-        let junk = d.0.join("junk.png");
+        let junk = d.join("junk.png");
         std::fs::write(&junk, b"\x89PNG\r\n\x1a\nbroken").unwrap();
         let e = load_heightmap(&junk, 1.0, 1.0).unwrap_err().to_string();
         assert!(e.contains("junk.png"), "{e}");
-        let txt = d.0.join("notes.txt");
+        let txt = d.join("notes.txt");
         std::fs::write(&txt, b"hello").unwrap();
         let e = load_heightmap(&txt, 1.0, 1.0).unwrap_err().to_string();
         assert!(e.contains("notes.txt") && e.contains("neither"), "{e}");
-        let e = load_heightmap(&d.0.join("missing.npy"), 1.0, 1.0)
+        let e = load_heightmap(&d.join("missing.npy"), 1.0, 1.0)
             .unwrap_err()
             .to_string();
         assert!(e.contains("missing.npy"), "{e}");
@@ -289,15 +276,15 @@ mod tests {
 
     #[test]
     fn png16_round_trip_and_resolve() {
-        let d = TmpDir::new("rt");
+        let d = TestDir::new("hmio-rt");
         let hf = resolve_geometry("sine:n=32,period=8,amplitude=2", 16.0, 0.5).unwrap();
         assert_eq!(hf.cell_mm, 0.5);
         assert!((hf.min_max().1 - 1.0).abs() < 1e-12);
         assert!(hf.name.starts_with("sine:n=32"));
-        let p = d.0.join("out.png");
+        let p = d.join("out.png");
         let (lo, hi) = write_png16(&p, &hf).unwrap();
         assert!((lo + 0.5).abs() < 1e-12 && (hi - 0.5).abs() < 1e-12);
-        let leftovers: Vec<_> = std::fs::read_dir(&d.0)
+        let leftovers: Vec<_> = std::fs::read_dir(d.path())
             .unwrap()
             .map(|e| e.unwrap().file_name())
             .collect();
@@ -318,9 +305,6 @@ mod tests {
         let e = resolve_geometry("flat", -1.0, 1.0).unwrap_err().to_string();
         assert!(e.contains("patch size"), "{e}");
         let flat = resolve_geometry("flat:n=8", 1.0, 1.0).unwrap();
-        assert_eq!(
-            write_png16(&d.0.join("flat.png"), &flat).unwrap(),
-            (0.0, 0.0)
-        );
+        assert_eq!(write_png16(&d.join("flat.png"), &flat).unwrap(), (0.0, 0.0));
     }
 }

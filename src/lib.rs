@@ -56,4 +56,7 @@ pub mod fab;
 pub mod forward;
 pub mod pairs;
 
+#[cfg(test)]
+pub(crate) mod testdir;
+
 pub use error::{Error, Result};

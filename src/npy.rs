@@ -332,6 +332,7 @@ pub fn write_npy_f64(path: &Path, h: usize, w: usize, data: &[f64]) -> Result<()
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testdir::TestDir;
 
     fn header_bytes(major: u8, dict: &str) -> Vec<u8> {
         let mut h = dict.to_string();
@@ -353,8 +354,7 @@ mod tests {
 
     #[test]
     fn round_trip_f64_file() {
-        let dir = std::env::temp_dir().join(format!("biscale_npy_{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = TestDir::new("npy");
         let p = dir.join("a.npy");
         let data: Vec<f64> = (0..12).map(|i| i as f64 * 0.37 - 1.5).collect();
         write_npy_f64(&p, 3, 4, &data).unwrap();
@@ -368,7 +368,6 @@ mod tests {
         assert_eq!((h, w), (3, 4));
         assert_eq!(back, data);
         assert!(write_npy_f64(&p, 3, 3, &data).is_err());
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

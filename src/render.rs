@@ -358,11 +358,7 @@ pub fn brdf_slices_png(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A directory of this test's own (tests run in parallel).
-    fn dir(test: &str) -> std::path::PathBuf {
-        std::env::temp_dir().join(format!("biscale-render-{}-{test}", std::process::id()))
-    }
+    use crate::testdir::TestDir;
 
     #[test]
     fn lambertian_sphere_has_cosine_falloff() {
@@ -400,7 +396,7 @@ mod tests {
         assert_eq!((w, h), (74, 40));
         let e = auto_exposure(&img);
         assert!(e.is_finite() && e > 0.0);
-        let d = dir("dims");
+        let d = TestDir::new("render-dims");
         let p = d.join("spheres.png");
         write_png_rgb(&p, &img, w, h, e).unwrap();
         let r = image::open(&p).unwrap();
@@ -413,7 +409,6 @@ mod tests {
         heightfield_png(&p, &hf, 64).unwrap();
         let r = image::open(&p).unwrap();
         assert_eq!((r.width(), r.height()), (64, 32));
-        std::fs::remove_dir_all(d).ok();
     }
 
     #[test]
@@ -423,7 +418,7 @@ mod tests {
         assert!(img.iter().flatten().all(|v| v.is_finite()));
         let nan_img = vec![[f32::NAN, f32::INFINITY, -1.0]; 4];
         assert_eq!(auto_exposure(&nan_img), 1.0);
-        let d = dir("nan");
+        let d = TestDir::new("render-nan");
         let p = d.join("nan.png");
         write_png_rgb(&p, &nan_img, 2, 2, 1.0).unwrap();
         let r = image::open(&p).unwrap().to_rgb8();
@@ -435,7 +430,6 @@ mod tests {
             (120, 90),
         );
         assert!(cap.unwrap().contains("no positive finite value"));
-        std::fs::remove_dir_all(d).ok();
     }
 
     #[test]
@@ -446,7 +440,8 @@ mod tests {
             wi.z * (0.1 + 20.0 * h.z.powi(50))
         };
         let holes = |wi: Vec3, wo: Vec3| if wo.x > 0.5 { f64::NAN } else { lam(wi, wo) };
-        let (d, p) = (dir("slices"), dir("slices").join("slices.png"));
+        let tmp = TestDir::new("render-slices");
+        let p = tmp.join("slices.png");
         let curves: [(&str, Fbar); 3] = [("target", &glossy), ("approx", &lam), ("holes", &holes)];
         let cap = brdf_slices_png(&p, &curves, &[0.0, 30.0, 60.0], (200, 150)).unwrap();
         assert!(
@@ -457,6 +452,5 @@ mod tests {
         let r = image::open(&p).unwrap();
         assert_eq!((r.width(), r.height()), (3 * 200 + 2 * 10, 150));
         assert!(brdf_slices_png(&p, &curves, &[90.0], (200, 150)).is_err());
-        std::fs::remove_dir_all(d).ok();
     }
 }

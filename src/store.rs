@@ -715,17 +715,11 @@ impl ArrayFile {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn dir(name: &str) -> PathBuf {
-        let d = std::env::temp_dir().join(format!("biscale-store-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&d);
-        std::fs::create_dir_all(&d).unwrap();
-        d
-    }
+    use crate::testdir::TestDir;
 
     #[test]
     fn round_trip_and_streamed_equals_whole() {
-        let d = dir("rt");
+        let d = TestDir::new("store-rt");
         let v: Vec<f32> = (0..1000).map(|i| i as f32 * 0.5).collect();
         write_array(&d.join("a.bsa"), "a", Dtype::F32, &[10, 100], f32_bytes(&v)).unwrap();
         let mut w = ArrayWriter::create(&d.join("b.bsa"), "a", Dtype::F32, &[10, 100]).unwrap();
@@ -751,7 +745,7 @@ mod tests {
 
     #[test]
     fn corruption_truncation_and_mismatch_are_named_errors() {
-        let d = dir("bad");
+        let d = TestDir::new("store-bad");
         let p = d.join("a.bsa");
         let v: Vec<f32> = (0..256).map(|i| i as f32).collect();
         write_array(&p, "gamma", Dtype::F32, &[256], f32_bytes(&v)).unwrap();
@@ -813,7 +807,7 @@ mod tests {
 
     #[test]
     fn a_partial_array_resumes_after_its_last_good_unit_and_equals_the_whole() {
-        let d = dir("partial");
+        let d = TestDir::new("store-partial");
         let p = d.join("a.bsa");
         let v: Vec<f32> = (0..1000).map(|i| (i as f32).sin()).collect();
         let units: Vec<&[f32]> = v.chunks(100).collect();
@@ -885,7 +879,7 @@ mod tests {
 
     #[test]
     fn unfinished_writer_leaves_nothing() {
-        let d = dir("drop");
+        let d = TestDir::new("store-drop");
         {
             let mut w = ArrayWriter::create(&d.join("x.bsa"), "x", Dtype::F32, &[4]).unwrap();
             w.write(&[0u8; 8]).unwrap();

@@ -568,6 +568,7 @@ fn builtin_window(name: &str, seed: u64, win: Window) -> Result<Vec<f64>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testdir::TestDir;
 
     #[test]
     fn builtins_are_deterministic_distinct_and_in_range() {
@@ -724,8 +725,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("tex.png"), "{e}");
-        let dir = std::env::temp_dir().join(format!("biscale_tex_{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = TestDir::new("tex");
         let p = dir.join("junk.png");
         std::fs::write(&p, b"not a png at all").unwrap();
         let e = load_grey(&p).unwrap_err().to_string();
@@ -739,6 +739,5 @@ mod tests {
         let g = load_grey(&q).unwrap();
         assert_eq!((g.w, g.h), (4, 3));
         assert!((g.at(3, 2) - 180.0 / 255.0).abs() < 1e-3);
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -3,6 +3,8 @@
 //! the scale window; costs; exported STL solids checked by the Manifold kernel and read back with
 //! stl_io; determinism; no partial files; OBJ import.
 
+mod common;
+
 use biscale::fab::catalogue::{Tool, ToolKind};
 use biscale::fab::export::stl_bytes;
 use biscale::fab::mesh::{solid, verify, TileGrid};
@@ -12,14 +14,8 @@ use biscale::fab::{
 };
 use biscale::generators::parse_generator;
 use biscale::heightfield::Heightfield;
-use std::path::{Path, PathBuf};
-
-fn tmp(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("biscale_fab_{tag}_{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
+use common::TestDir;
+use std::path::Path;
 
 fn paths() -> FabPaths {
     FabPaths::new(Path::new(env!("CARGO_MANIFEST_DIR")))
@@ -80,7 +76,7 @@ fn load_text(dir: &Path, file: &str, text: &str) -> Result<biscale::fab::Profile
 
 #[test]
 fn bad_profiles_name_file_and_key() {
-    let d = tmp("bad");
+    let d = TestDir::new("fab-bad");
     assert!(load_text(&d, "good.toml", GOOD).is_ok());
     let cases: Vec<(&str, String, Vec<&str>)> = vec![
         (
@@ -187,7 +183,7 @@ fn bad_profiles_name_file_and_key() {
 
 #[test]
 fn bad_catalogue_names_file_section_and_key() {
-    let d = tmp("cat");
+    let d = TestDir::new("fab-cat");
     let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("constraints");
     std::fs::create_dir_all(d.join("constraints")).unwrap();
     std::fs::create_dir_all(d.join("profiles/fabrication")).unwrap();
@@ -522,7 +518,7 @@ fn read_back(path: &Path) -> stl_io::IndexedMesh {
 #[test]
 fn exported_tiles_are_closed_positive_and_deterministic() {
     let p = load_profile("cnc-ball1-wax", &paths()).unwrap();
-    let d = tmp("export");
+    let d = TestDir::new("fab-export");
     for spec in ["bumps:n=64", "vgroove:n=64", "bricks:n=64", "fbm:n=64"] {
         let hf = gen(spec);
         for dec in [
@@ -625,7 +621,7 @@ fn exported_tiles_are_closed_positive_and_deterministic() {
 #[test]
 fn png_sidecar_gives_heights_in_mm() {
     let p = load_profile("cnc-ball1-wax", &paths()).unwrap();
-    let d = tmp("png");
+    let d = TestDir::new("fab-png");
     let hf = gen("sine:n=32");
     let r = export_detail(&hf, &p, 4.0, (6.0, 5.0), &d, "s", None).unwrap();
     let j: serde_json::Value =
@@ -651,7 +647,7 @@ fn png_sidecar_gives_heights_in_mm() {
 #[test]
 fn no_partial_file_when_the_directory_cannot_be_made() {
     let p = load_profile("cnc-ball1-wax", &paths()).unwrap();
-    let d = tmp("nowrite");
+    let d = TestDir::new("fab-nowrite");
     let blocker = d.join("file");
     std::fs::write(&blocker, b"x").unwrap();
     let e = export_detail(
@@ -717,7 +713,7 @@ fn write_obj(path: &Path, hf: &Heightfield, extra: &str) {
 
 #[test]
 fn obj_heightfields_import_and_overhangs_are_rejected() {
-    let d = tmp("obj");
+    let d = TestDir::new("fab-obj");
     let mut hf = gen("bumps:n=16");
     hf.cell_mm = 0.25;
     let f = d.join("ok.obj");

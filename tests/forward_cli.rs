@@ -4,16 +4,12 @@
 //! for a `.npy` heightmap whose fbar does not change when patch size and height scale are scaled
 //! together (BVNDFs are scale-free).
 
+mod common;
+
 use biscale::npy::write_npy_f64;
+use common::TestDir;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-
-fn tmp_dir(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("biscale_fwdcli_{tag}_{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 const PAIRS: &str =
     "theta_i,phi_i,theta_o,phi_o\n0,0,0,0\n30,0,30,180\n60,10,45,200\n85,0,89,90\n89.9,0,30,180\n";
@@ -75,7 +71,7 @@ fn expect_failure(dir: &Path, args: &[&str], out: &Path, must_name: &[&str]) {
 
 #[test]
 fn nonsense_input_is_rejected_clearly() {
-    let dir = tmp_dir("bad");
+    let dir = TestDir::new("fwdcli-bad");
     let pairs = write_pairs(&dir);
     let pairs_s = pairs.to_str().unwrap();
     let out = dir.join("out.csv");
@@ -191,8 +187,6 @@ fn nonsense_input_is_rejected_clearly() {
         a.extend([opt.to_string(), "0".to_string()]);
         run(a, &[opt, "1..=64"]);
     }
-
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// Parse a forward CSV: header and rows of six numbers.
@@ -233,7 +227,7 @@ fn check_brdf_column(rows: &[[f64; 6]], what: &str) {
 
 #[test]
 fn happy_path_exact_and_fast() {
-    let dir = tmp_dir("ok");
+    let dir = TestDir::new("fwdcli-ok");
     let pairs = write_pairs(&dir);
     for method in ["exact", "fast"] {
         let out = dir.join(format!("O_{method}.csv"));
@@ -256,12 +250,11 @@ fn happy_path_exact_and_fast() {
         // the angle columns echo the pairs file
         assert_eq!(rows[2][..4], [60.0, 10.0, 45.0, 200.0]);
     }
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
 fn npy_heightmap_is_scale_free() {
-    let dir = tmp_dir("npy");
+    let dir = TestDir::new("fwdcli-npy");
     let pairs = write_pairs(&dir);
     // A smooth periodic bump field, values in "mm at height scale 1".
     let n = 24;
@@ -353,7 +346,6 @@ fn npy_heightmap_is_scale_free() {
             "{method}: halving the relief changed nothing; the scale check would be vacuous"
         );
     }
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// The fast method's build settings are the user's: `--n-phi`, `--rays` and `--seen-rays` reach
@@ -361,7 +353,7 @@ fn npy_heightmap_is_scale_free() {
 /// (both are estimates of the same fbar).
 #[test]
 fn fast_build_settings_reach_the_bvndf() {
-    let dir = tmp_dir("fast-settings");
+    let dir = TestDir::new("fwdcli-fast-settings");
     let pairs = write_pairs(&dir);
     let run = |extra: &[&str]| -> (String, Vec<f64>) {
         let mut args = vec![
@@ -403,5 +395,4 @@ fn fast_build_settings_reach_the_bvndf() {
     for (a, b) in default.iter().zip(&fine) {
         assert!((a - b).abs() <= 0.1 * b.abs().max(1e-3), "{a} vs {b}");
     }
-    std::fs::remove_dir_all(&dir).ok();
 }

@@ -5,6 +5,8 @@
 //! 2. the visible projected area of every procedural generator is `A_base cos(theta)`;
 //! 3. the exact evaluator is reciprocal: `fbar(wi, wo)/cos(theta_i) == fbar(wo, wi)/cos(theta_o)`.
 
+mod common;
+
 use biscale::bvndf::{BvndfConfig, CompactBvndf};
 use biscale::exact::ExactEvaluator;
 use biscale::fast;
@@ -15,14 +17,8 @@ use biscale::heightfield::Heightfield;
 use biscale::material::{parse_material, Material, MerlBrdf};
 use biscale::prefilter::{PrefilterConfig, Prefiltered};
 use biscale::visibility::Visibility;
+use common::TestDir;
 use std::f64::consts::PI;
-use std::path::PathBuf;
-
-fn tmp_dir(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("biscale_fwd_{tag}_{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 /// Relative error, with an exact-zero reference demanding an exact zero.
 fn rel(got: f64, want: f64) -> f64 {
@@ -107,7 +103,7 @@ fn all_materials(dir: &std::path::Path) -> Vec<(String, Material)> {
 /// cosine up to rounding (~1e-15); 1e-6 is the demand.
 #[test]
 fn flat_patch_exact_is_brdf_times_cosine() {
-    let dir = tmp_dir("flat_exact");
+    let dir = TestDir::new("fwd-flat-exact");
     let hf = parse_generator("flat:n=16").unwrap().build().unwrap();
     let pairs = flat_pairs();
     let dp = dirs(&pairs);
@@ -135,13 +131,12 @@ fn flat_patch_exact_is_brdf_times_cosine() {
         worst_all = worst_all.max(worst.0);
     }
     eprintln!("flat exact: worst over all materials {worst_all:.3e}");
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// The fast method on a flat patch, every material, reporting the achieved error per material.
 /// Returns `(spec, worst relative error, worst pair)`.
 fn flat_fast_errors() -> Vec<(String, f64, (f64, f64, f64, f64))> {
-    let dir = tmp_dir("flat_fast");
+    let dir = TestDir::new("fwd-flat-fast");
     let hf = parse_generator("flat:n=16").unwrap().build().unwrap();
     let pairs = flat_pairs();
     let dp = dirs(&pairs);
@@ -173,7 +168,6 @@ fn flat_fast_errors() -> Vec<(String, f64, (f64, f64, f64, f64))> {
         );
         out.push((spec, worst.0, pairs[worst.1]));
     }
-    std::fs::remove_dir_all(&dir).ok();
     out
 }
 

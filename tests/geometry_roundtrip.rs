@@ -1,19 +1,16 @@
 //! End-to-end checks of the geometry inputs: every procedural generator resolves through
 //! `resolve_geometry`, exports to `.npy` and 16-bit PNG, and loads back with the same samples.
 
+mod common;
+
 use biscale::generators::{list, parse_generator};
 use biscale::heightmap_io::{load_heightmap, resolve_geometry, write_png16};
 use biscale::npy::write_npy_f64;
-
-fn tmp_dir(tag: &str) -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!("biscale_geometry_{tag}_{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
+use common::TestDir;
 
 #[test]
 fn every_generator_exports_and_reloads() {
-    let dir = tmp_dir("rt");
+    let dir = TestDir::new("geometry-rt");
     let patch_mm = 6.4;
     for (name, _) in list() {
         let spec = format!("{name}:n=32");
@@ -41,7 +38,6 @@ fn every_generator_exports_and_reloads() {
             assert!((want - b).abs() <= tol + 1e-12, "{spec}: {want} vs {b}");
         }
     }
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 #[test]

@@ -2,19 +2,16 @@
 //! after a kill (of shards, and of a one-process build writing its joined arrays), finished libraries left alone (unless forced), relative texture directories in
 //! sharded builds, corrupted and truncated files, refused directories, and lazy opening.
 
+mod common;
+
 use biscale::library::build::{build_joined, build_shard, Shard};
 use biscale::library::profile::LibraryProfile;
 use biscale::library::progress::Progress;
 use biscale::library::{build_all, merge_shards, Library};
+use common::TestDir;
 use std::path::{Path, PathBuf};
 
 const QUIET: Progress = Progress { quiet: true };
-
-fn fresh(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("biscale-lib-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
-}
 
 fn tiny() -> (LibraryProfile, PathBuf) {
     let (p, path) = LibraryProfile::load("tiny").unwrap();
@@ -59,8 +56,8 @@ fn manifest_without_build(dir: &Path) -> serde_json::Value {
 #[test]
 fn same_profile_and_seed_give_identical_files_and_shards_equal_one_process() {
     let (p, base) = tiny();
-    let a = fresh("a");
-    let b = fresh("b");
+    let a = TestDir::new("lib-a");
+    let b = TestDir::new("lib-b");
     let m = build_all(&p, &base, &a, &QUIET, false, false).unwrap();
     assert_eq!(m.geometries, p.geometry_count());
     assert!(m.geometry.representatives >= 1 && m.material.representatives >= 1);
@@ -84,18 +81,15 @@ fn same_profile_and_seed_give_identical_files_and_shards_equal_one_process() {
         "chunks are removed after the merge"
     );
     // The same build again, from scratch: identical bytes.
-    let c = fresh("c");
+    let c = TestDir::new("lib-c");
     build_all(&p, &base, &c, &QUIET, false, false).unwrap();
     assert_eq!(data_files(&a), data_files(&c));
-    for d in [a, b, c] {
-        let _ = std::fs::remove_dir_all(d);
-    }
 }
 
 #[test]
 fn an_interrupted_build_resumes_and_a_damaged_chunk_is_rebuilt() {
     let (p, base) = tiny();
-    let d = fresh("resume");
+    let d = TestDir::new("lib-resume");
     // "Killed" after half the chunks: only shard 0 of 2 exists.
     let first = build_shard(&p, &base, &d, Shard { index: 0, count: 2 }, false, &QUIET).unwrap();
     assert!(first.chunks_built > 0);
@@ -119,25 +113,23 @@ fn an_interrupted_build_resumes_and_a_damaged_chunk_is_rebuilt() {
     let rep = build_shard(&p, &base, &d, Shard::ALL, false, &QUIET).unwrap();
     assert_eq!(rep.chunks_reused, first.chunks_built - 1);
     merge_shards(&d, &QUIET, false).unwrap();
-    let clean = fresh("resume-clean");
+    let clean = TestDir::new("lib-resume-clean");
     build_all(&p, &base, &clean, &QUIET, false, false).unwrap();
     assert_eq!(data_files(&d), data_files(&clean));
-    let _ = std::fs::remove_dir_all(d);
-    let _ = std::fs::remove_dir_all(clean);
 }
 
 #[test]
 fn a_killed_one_process_build_resumes_its_joined_arrays_and_copies_shard_chunks_in() {
     let (p, base) = tiny();
-    let clean = fresh("kill-clean");
+    let clean = TestDir::new("lib-kill-clean");
     build_all(&p, &base, &clean, &QUIET, false, false).unwrap();
     // Kill -9 the command-line build once its geometry arrays hold a chunk (or later: the
     // timing does not matter to what is checked).
-    let d = fresh("kill");
+    let d = TestDir::new("lib-kill");
     let log = d.join("geometry/.gamma.bsa.partial.log");
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_biscale"))
         .args(["library", "build", "--profile", "tiny", "--quiet", "--out"])
-        .arg(&d)
+        .arg(d.path())
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .spawn()
@@ -176,7 +168,7 @@ fn a_killed_one_process_build_resumes_its_joined_arrays_and_copies_shard_chunks_
 
     // Chunks of an earlier sharded build are copied into the arrays, not built again, and
     // removed once the arrays are finished.
-    let s = fresh("shard-then-one");
+    let s = TestDir::new("lib-shard-then-one");
     let half = build_shard(&p, &base, &s, Shard { index: 1, count: 2 }, false, &QUIET).unwrap();
     let rep = build_joined(&p, &base, &s, false, &QUIET).unwrap();
     assert_eq!(rep.chunks_reused, half.chunks_built);
@@ -187,21 +179,18 @@ fn a_killed_one_process_build_resumes_its_joined_arrays_and_copies_shard_chunks_
     );
     merge_shards(&s, &QUIET, false).unwrap();
     assert_eq!(data_files(&s), data_files(&clean));
-    for dir in [clean, d, s] {
-        let _ = std::fs::remove_dir_all(dir);
-    }
 }
 
 #[test]
 fn a_merge_stopped_after_joining_resumes_without_rebuilding_the_joined_parts() {
     let (p, base) = tiny();
-    let clean = fresh("join-clean");
+    let clean = TestDir::new("lib-join-clean");
     build_all(&p, &base, &clean, &QUIET, true, false).unwrap();
     let n_geo_chunks = p.geometry_count().div_ceil(p.chunk);
     // The state of a merge killed while joining the light lobes: the binned columns are joined
     // and their chunks removed, the first light-lobe chunk is joined (removed) but the lobes'
     // joined file was never renamed into place, nothing is compressed, no manifest.
-    let d = fresh("join-stopped");
+    let d = TestDir::new("lib-join-stopped");
     build_shard(&p, &base, &d, Shard::ALL, false, &QUIET).unwrap();
     std::fs::create_dir_all(d.join("geometry")).unwrap();
     std::fs::copy(
@@ -233,14 +222,12 @@ fn a_merge_stopped_after_joining_resumes_without_rebuilding_the_joined_parts() {
     assert_eq!(rep.chunks_built, n_geo_chunks);
     merge_shards(&d, &QUIET, false).unwrap();
     assert_eq!(data_files(&d), data_files(&clean));
-    let _ = std::fs::remove_dir_all(d);
-    let _ = std::fs::remove_dir_all(clean);
 }
 
 #[test]
 fn corrupted_truncated_and_foreign_files_are_named_errors_and_opening_is_lazy() {
     let (p, base) = tiny();
-    let d = fresh("bad");
+    let d = TestDir::new("lib-bad");
     build_all(&p, &base, &d, &QUIET, false, false).unwrap();
     let lib = Library::open(&d).unwrap();
     assert!(lib.reads().is_empty(), "open reads only the manifest");
@@ -278,7 +265,7 @@ fn corrupted_truncated_and_foreign_files_are_named_errors_and_opening_is_lazy() 
     assert!(e.contains("gamma.bsa") && e.contains("truncated"), "{e}");
     std::fs::write(&g, &good).unwrap();
     // A file from another build (valid on its own, wrong for this manifest).
-    let other = fresh("bad-other");
+    let other = TestDir::new("lib-bad-other");
     let mut q = p.clone();
     q.seed = 2;
     build_all(&q, &base, &other, &QUIET, false, false).unwrap();
@@ -317,14 +304,12 @@ fn corrupted_truncated_and_foreign_files_are_named_errors_and_opening_is_lazy() 
     std::fs::write(d.join("manifest.json"), b"{\"format\": 3").unwrap();
     let e = Library::open(&d).err().unwrap().to_string();
     assert!(e.contains("manifest.json"), "{e}");
-    let _ = std::fs::remove_dir_all(d);
-    let _ = std::fs::remove_dir_all(other);
 }
 
 #[test]
 fn a_finished_library_is_not_rebuilt_unless_forced() {
     let (p, base) = tiny();
-    let d = fresh("finished");
+    let d = TestDir::new("lib-finished");
     let m = build_all(&p, &base, &d, &QUIET, false, false).unwrap();
     let manifest = std::fs::read(d.join("manifest.json")).unwrap();
     let files = data_files(&d);
@@ -381,12 +366,11 @@ fn a_finished_library_is_not_rebuilt_unless_forced() {
     build_shard(&p, &base, &d, Shard { index: 1, count: 2 }, false, &QUIET).unwrap();
     merge_shards(&d, &QUIET, false).unwrap();
     assert_eq!(data_files(&d), files);
-    let _ = std::fs::remove_dir_all(d);
 }
 
 #[test]
 fn relative_texture_dirs_are_stored_absolute_so_a_sharded_merge_finds_them() {
-    let root = fresh("reltex");
+    let root = TestDir::new("lib-reltex");
     let pdir = root.join("profiles");
     std::fs::create_dir_all(pdir.join("tex")).unwrap();
     let img =
@@ -433,14 +417,13 @@ fn relative_texture_dirs_are_stored_absolute_so_a_sharded_merge_finds_them() {
     let one = root.join("one");
     build_all(&p, &base, &one, &QUIET, false, false).unwrap();
     assert_eq!(data_files(&lib), data_files(&one));
-    let _ = std::fs::remove_dir_all(root);
 }
 
 #[test]
 fn light_lobe_weights_fit_the_probes_at_least_as_well_as_the_binned_fit_and_refit_is_identical() {
     use biscale::library::lobefit::Probes;
     let (p, base) = tiny();
-    let d = fresh("lobefit");
+    let d = TestDir::new("lib-lobefit");
     build_all(&p, &base, &d, &QUIET, false, false).unwrap();
     let lib = Library::open(&d).unwrap();
     assert!(lib.has("geometry/x-lobes.bsa"));
@@ -514,5 +497,4 @@ fn light_lobe_weights_fit_the_probes_at_least_as_well_as_the_binned_fit_and_refi
         before
     );
     assert!(Library::open(&d).unwrap().has("geometry/x-lobes.bsa"));
-    let _ = std::fs::remove_dir_all(d);
 }

@@ -1,19 +1,23 @@
 //! Solvers, validation and the design job on the `tiny` library.
 
+mod common;
+
 use biscale::library::build::Shard;
 use biscale::library::profile::LibraryProfile;
 use biscale::library::progress::Progress;
 use biscale::library::Library;
 use biscale::material::parse_material;
 use biscale::solve::{Final, Look, SolveOptions};
+use common::TestDir;
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
+/// The `tiny` library, built once per test process and shared by its tests (in cargo's
+/// `target/tmp`, see [`common::shared_dir`]).
 fn tiny_library() -> PathBuf {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        let d = std::env::temp_dir().join(format!("biscale-solve-lib-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&d);
+        let d = common::shared_dir("solve-tiny-lib");
         let (p, path) = LibraryProfile::load("tiny").unwrap();
         let base = path.parent().unwrap().to_path_buf();
         biscale::library::build::build_shard(
@@ -258,7 +262,6 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
         .filter(|n| n.to_string_lossy().starts_with('.'))
         .collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
-    let _ = std::fs::remove_dir_all(&out);
 }
 
 /// Material CX weights are fitted to unit-norm tables, so every material's own table is
@@ -603,7 +606,6 @@ fn design_refines_shape_and_free_material_parameters() {
     if let Some(g) = r["geometry_spec"].as_str() {
         biscale::generators::parse_generator(g).unwrap();
     }
-    let _ = std::fs::remove_dir_all(&out);
 }
 
 /// Options for a quick general solve on the tiny library: `k` answers, a `pool`, `psi`
@@ -630,17 +632,15 @@ fn small_general(
     )
 }
 
-/// A design job in a fresh temporary directory `biscale-TAG-PID` on the tiny library `lib`: the
-/// scene is `scene` (its name, target and extra keys) plus a 1 mm ball-nose, a 20 mm tile seen
-/// from 100 m, one detail of four candidates and one rotation.
+/// A design job in a fresh temporary directory `biscale-TAG-PID-N` (removed when dropped) on the
+/// tiny library `lib`: the scene is `scene` (its name, target and extra keys) plus a 1 mm
+/// ball-nose, a 20 mm tile seen from 100 m, one detail of four candidates and one rotation.
 fn design_job(
     tag: &str,
     lib: &std::path::Path,
     scene: &str,
-) -> (PathBuf, biscale::design::DesignJob) {
-    let out = std::env::temp_dir().join(format!("biscale-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
-    std::fs::create_dir_all(&out).unwrap();
+) -> (TestDir, biscale::design::DesignJob) {
+    let out = TestDir::new(tag);
     let path = out.join("scene.toml");
     std::fs::write(
         &path,
@@ -653,7 +653,7 @@ fn design_job(
     .unwrap();
     let job = biscale::design::DesignJob {
         scene: Some(path),
-        outputs: out.clone(),
+        outputs: out.to_path_buf(),
         force: false,
         library: Some(lib.to_path_buf()),
         cache_dir: None,
@@ -743,5 +743,4 @@ fn design_checks_inputs_first_and_reads_paths_beside_the_scene() {
         "fixed_material = \"ggx:alpha=0.1\"\nheightmap_patch_mm = 5\n",
         "heightmap_patch_mm",
     );
-    let _ = std::fs::remove_dir_all(&out);
 }

@@ -7,7 +7,18 @@ use super::profile::Profile;
 use super::{check_detail, millability, CheckOptions};
 use crate::error::Result;
 use crate::generators::parse_generator;
+use std::path::PathBuf;
 use std::time::Instant;
+
+/// A scratch directory removed when dropped, so an early return (`?`) or a panic leaves nothing
+/// behind either.
+struct Scratch(PathBuf);
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -55,7 +66,8 @@ pub fn bench_fab(profile: &Profile, reps: usize) -> Result<String> {
             ));
         }
     }
-    let dir = std::env::temp_dir().join(format!("biscale-fab-bench-{}", std::process::id()));
+    let dir =
+        Scratch(std::env::temp_dir().join(format!("biscale-fab-bench-{}", std::process::id())));
     out.push_str(
         "\n| geometry (128²) | patch | tile samples | decimation | triangles (full → written) | max error | export |\n|---|---|---|---|---|---|---|\n",
     );
@@ -69,7 +81,7 @@ pub fn bench_fab(profile: &Profile, reps: usize) -> Result<String> {
             (5.0, Some(Decimation::MaxErrorMm(0.01))),
         ] {
             let (t, r) = time(1, || {
-                export_detail(&hf, profile, patch, (50.0, 50.0), &dir, "bench", dec)
+                export_detail(&hf, profile, patch, (50.0, 50.0), &dir.0, "bench", dec)
             })?;
             out.push_str(&format!(
                 "| {spec} | {patch} mm | {}² | {} | {} → {} | {:.4} mm | {:.2} s |\n",
@@ -90,6 +102,5 @@ pub fn bench_fab(profile: &Profile, reps: usize) -> Result<String> {
             ));
         }
     }
-    let _ = std::fs::remove_dir_all(&dir);
     Ok(out)
 }

@@ -178,11 +178,13 @@ fn summary(dir: &Path, m: &Manifest) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testdir::TestDir;
 
     #[test]
     fn building_a_finished_library_does_nothing_unless_forced() {
-        let dir = std::env::temp_dir().join(format!("biscale-cmd-build-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
+        let tmp = TestDir::new("cmd-build");
+        // Not made here: the build makes it.
+        let dir = tmp.join("lib");
         let mut job = BuildJob {
             profile: "tiny".into(),
             out: Some(dir.clone()),
@@ -207,6 +209,5 @@ mod tests {
         let forced = build(&job).unwrap();
         assert!(!forced.contains("already built"), "{forced}");
         assert_ne!(std::fs::read(dir.join("manifest.json")).unwrap(), manifest);
-        std::fs::remove_dir_all(&dir).ok();
     }
 }

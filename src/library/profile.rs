@@ -458,6 +458,7 @@ fn check_ranges(key: &str, params: &BTreeMap<String, Range2>, log: &[String]) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testdir::TestDir;
 
     #[test]
     fn shipped_profiles_load() {
@@ -504,8 +505,7 @@ mod tests {
 
     #[test]
     fn shipped_lookup_takes_the_first_directory_holding_the_name() {
-        let root = std::env::temp_dir().join(format!("biscale-shipped-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&root);
+        let root = TestDir::new("shipped");
         let (a, b, c) = (root.join("a"), root.join("b"), root.join("c"));
         for d in [&a, &b, &c] {
             std::fs::create_dir_all(d).unwrap();
@@ -529,7 +529,6 @@ mod tests {
         let exe_dir = exe.parent().unwrap();
         let up2 = exe_dir.parent().unwrap().parent().unwrap();
         assert!(all.contains(&up2.join("profiles/library")), "{all:?}");
-        std::fs::remove_dir_all(&root).ok();
     }
 
     #[test]

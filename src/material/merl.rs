@@ -183,11 +183,11 @@ impl MerlBrdf {
 mod tests {
     use super::*;
     use crate::frame::dir_from_deg;
+    use crate::testdir::TestDir;
 
     #[test]
     fn constant_file_reads_back_and_rejects_bad_headers() {
-        let dir = std::env::temp_dir().join(format!("biscale-merl-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = TestDir::new("merl");
         let p = dir.join("const.binary");
         // 1500/pi in the red channel gives exactly 1/pi after scaling.
         MerlBrdf::write_synthetic(&p, |_, _, _, c| if c == 0 { 1500.0 / PI } else { -1.0 })
@@ -208,6 +208,5 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("dimensions"));
-        std::fs::remove_dir_all(&dir).ok();
     }
 }
