@@ -161,8 +161,9 @@ enum Cmd {
         /// by their binned columns (the pool then comes from the light-lobe rankings: X and, when the library has them, the weights refitted to the light lobes).
         #[arg(long)]
         lobes_search_only: bool,
-        /// General solver: starts (plus one from the first start's material sharpened, run
-        /// only when no start came within --stop-below) and iterations per start.
+        /// General solver: starts (plus two from the first start's material sharpened, lobe
+        /// widths x 0.4 and x 0.25, each run only when no start before it came within
+        /// --stop-below) and iterations per start.
         #[arg(long, default_value_t = 5)]
         starts: usize,
         #[arg(long, default_value_t = 4)]
@@ -230,8 +231,9 @@ enum Cmd {
         lobes_search_only: bool,
         #[arg(long, default_value_t = 3)]
         k: usize,
-        /// General solver: starts (plus one from the first start's material sharpened, run
-        /// only when no start came within --stop-below).
+        /// General solver: starts (plus two from the first start's material sharpened, lobe
+        /// widths x 0.4 and x 0.25, each run only when no start before it came within
+        /// --stop-below).
         #[arg(long, default_value_t = 3)]
         starts: usize,
         /// General solver: geometries of each geometry solve that get a material solve.

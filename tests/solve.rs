@@ -440,11 +440,12 @@ fn general_solver_answers_are_distinct_combinations() {
     }
 }
 
-/// When no start comes within `stop_below`, one more start follows the asked ones: the
-/// library material closest to the first start's material sharpened (a glossy material on a
-/// rough geometry is otherwise answered with a rougher one on a smoother geometry).
+/// When no start comes within `stop_below`, more starts follow the asked ones: the library
+/// materials closest to the first start's material sharpened by each factor of
+/// `general::SHARPEN` (a glossy material on a rough geometry is otherwise answered with a
+/// rougher one on a smoother geometry).
 #[test]
-fn general_solver_adds_a_sharper_start_only_when_no_start_succeeds() {
+fn general_solver_adds_sharper_starts_only_when_no_start_succeeds() {
     let lib = Library::open(&tiny_library()).unwrap();
     let mats = lib.material_items().unwrap();
     // A GGX material without a Lambertian lobe (the first start).
@@ -471,16 +472,28 @@ fn general_solver_adds_a_sharper_start_only_when_no_start_succeeds() {
         .iter()
         .filter(|n| n.contains("sharpened"))
         .collect();
-    assert_eq!(sharp.len(), 1, "{:?}", st.notes);
+    let factors = biscale::solve::general::SHARPEN;
     assert!(
-        sharp[0].starts_with("start 2:"),
-        "after the 2 asked starts: {:?}",
+        !sharp.is_empty() && sharp.len() <= factors.len(),
+        "{:?}",
         st.notes
     );
-    let same = format!("start 2: {}, ", mats[rough].spec);
+    // After the 2 asked starts, in the order of the factors, each a new material.
+    let mut specs = vec![mats[rough].spec.clone()];
+    for (i, note) in sharp.iter().enumerate() {
+        let prefix = format!("start {}: ", 2 + i);
+        assert!(note.starts_with(&prefix), "{:?}", st.notes);
+        let spec = note[prefix.len()..].split(", the library").next().unwrap();
+        assert!(
+            !specs.iter().any(|s| s == spec),
+            "a new material: {:?}",
+            st.notes
+        );
+        specs.push(spec.to_string());
+    }
     assert!(
-        !sharp[0].starts_with(&same),
-        "a different material: {:?}",
+        sharp[0].ends_with(&format!("x {})", factors[0])),
+        "{:?}",
         st.notes
     );
     // A start that succeeds ends the search before it.
