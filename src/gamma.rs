@@ -213,8 +213,8 @@ impl GammaLayout {
                         (0, 0.0, [0.0; STRIDE])
                     };
                     if kc > 0 {
-                        for q in 0..3 {
-                            blk.seen[k * 3 + q] += wgt * m[q];
+                        for (s, mq) in blk.seen[k * 3..k * 3 + 3].iter_mut().zip(&m) {
+                            *s += wgt * mq;
                         }
                     }
                     for (l, (wl, dl)) in self.lights.iter().zip(&light_dirs).enumerate() {

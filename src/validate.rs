@@ -273,6 +273,9 @@ fn verified(
     Ok(v.first().map_or(f64::INFINITY, |c| c.error))
 }
 
+/// A timed solver's answer: its best candidate and its median stage times (search, re-rank).
+type SolverAnswer = (Option<Candidate>, Option<(f64, f64)>);
+
 pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
     let (ng, nm) = (lib.manifest.geometries, lib.manifest.materials);
     if ng == 0 || nm == 0 {
@@ -326,7 +329,7 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
         // Run one solver (timed), verify its answer (untimed), count it, and name a miss.
         let run = |tally: &mut Tally,
                    name: &str,
-                   solve: &dyn Fn() -> Result<(Option<Candidate>, Option<(f64, f64)>)>,
+                   solve: &dyn Fn() -> Result<SolverAnswer>,
                    recovered: &dyn Fn(&Candidate) -> bool|
          -> Result<()> {
             let t = Instant::now();

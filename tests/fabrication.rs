@@ -394,7 +394,7 @@ fn feature_widths_of_known_grooves() {
         );
         // the land between grooves is a ridge 128 − n samples wide: wider than half the period
         assert!(
-            f.ridge_cells.map_or(true, |r| r > 40.0),
+            f.ridge_cells.is_none_or(|r| r > 40.0),
             "{:?}",
             f.ridge_cells
         );

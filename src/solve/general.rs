@@ -14,7 +14,7 @@ use crate::error::{Error, Result};
 use crate::library::Library;
 use crate::material::{parse_material, Material};
 use crate::rng::Rng;
-use std::collections::HashMap;
+use std::collections::hash_map::{Entry, HashMap};
 use std::time::Instant;
 
 /// Settings of the alternation.
@@ -165,7 +165,10 @@ pub fn explore(
     let mut geometry_solves: HashMap<usize, Vec<Candidate>> = HashMap::new();
     let mut material_solves: HashMap<(usize, u64), Vec<Candidate>> = HashMap::new();
     let mut s = 0;
-    while !stopped {
+    loop {
+        if stopped {
+            break;
+        }
         if done(&seen) {
             stats.notes.push(format!(
                 "stopped before start {s}: a combination is within {:.1} % (--stop-below)",
@@ -199,7 +202,7 @@ pub fn explore(
         let mut m = start_mats[s];
         let mut last: Option<(usize, i64, usize)> = None;
         for _ in 0..g.max_iterations.max(1) {
-            if !geometry_solves.contains_key(&m) {
+            if let Entry::Vacant(slot) = geometry_solves.entry(m) {
                 let mat: Material = parse_material(&mats[m].spec)?;
                 let gr = super::geometry::solve_with(
                     lib,
@@ -216,7 +219,7 @@ pub fn explore(
                 )?;
                 accumulate(&mut stats, &gr.stats);
                 seen.extend(gr.candidates.iter().cloned());
-                geometry_solves.insert(m, gr.candidates);
+                slot.insert(gr.candidates);
             }
             let geometries = geometry_solves[&m].clone();
             // Beam: the material solve on each of the best `beam` geometries; the best pair
@@ -225,7 +228,7 @@ pub fn explore(
             for cand in geometries.iter().take(g.beam.max(1)) {
                 let j = cand.geometry.unwrap_or(0);
                 let key = (j, cand.psi_deg.to_bits());
-                if !material_solves.contains_key(&key) {
+                if let Entry::Vacant(slot) = material_solves.entry(key) {
                     let hf = library_heightfield(&cand.geometry_spec)?;
                     let mr = super::material::solve(
                         lib,
@@ -238,7 +241,7 @@ pub fn explore(
                     )?;
                     accumulate(&mut stats, &mr.stats);
                     seen.extend(mr.candidates.iter().cloned());
-                    material_solves.insert(key, mr.candidates);
+                    slot.insert(mr.candidates);
                 }
                 if let Some(bm) = material_solves[&key].first() {
                     if best.as_ref().is_none_or(|b| bm.error < b.1.error) {

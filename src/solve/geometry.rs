@@ -48,7 +48,9 @@ struct Rotation {
     response: Option<Response>,
 }
 
-/// What stages 1 and 2 evaluate library geometries with.
+/// What stages 1 and 2 evaluate library geometries with. One per solve, so the size of the
+/// larger variant costs nothing worth a box.
+#[allow(clippy::large_enum_variant)]
 enum ItemData {
     Lobes {
         lobes: GeometryLobes,

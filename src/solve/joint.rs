@@ -356,7 +356,9 @@ pub fn search(
                 .or_default()
                 .push((i, p.material));
         }
-        let mut groups: Vec<((usize, usize), Vec<(usize, usize)>)> = by_geo.into_iter().collect();
+        // ((geometry, rotation), [(index in `chosen`, material)]).
+        type Group = ((usize, usize), Vec<(usize, usize)>);
+        let mut groups: Vec<Group> = by_geo.into_iter().collect();
         groups.sort_by_key(|(k, _)| *k);
         let errs: Vec<Vec<(usize, f64)>> = groups
             .par_iter()

@@ -8,6 +8,10 @@ use crate::sampling::Samples;
 use crate::target::{Target, TargetBase};
 use std::sync::{Arc, Mutex};
 
+/// One sample set drawn for a look ([`Look::memo`]): its key and the samples with the look's
+/// values at them.
+type SampleMemo = (Vec<u64>, Arc<(Samples, Vec<f64>)>);
+
 /// A target look: `fbar(wi, wo)` and its average colour.
 #[derive(Clone)]
 pub struct Look {
@@ -16,7 +20,7 @@ pub struct Look {
     /// Target average colour `lambda` (Eq. 13), if any.
     pub colour: Option<[f64; 3]>,
     /// Sample sets already drawn for this look (see [`Look::memo`]), shared by clones.
-    memo: Arc<Mutex<Vec<(Vec<u64>, Arc<(Samples, Vec<f64>)>)>>>,
+    memo: Arc<Mutex<Vec<SampleMemo>>>,
 }
 
 impl std::fmt::Debug for Look {

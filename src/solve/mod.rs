@@ -709,19 +709,15 @@ mod tests {
         // Each item has its clamped error (f64) or, outside the best SEARCH_RESCORE, the
         // unclamped one from the f32 Gram product: an upper bound up to f32 rounding.
         let mut rescored = 0;
-        for j in 0..items {
+        for (j, &ej) in e.iter().enumerate() {
             let (f, clamped) = recon(j);
             let (ec, eu) = (s.rel_error(&t, &clamped), s.rel_error(&t, &f));
-            if (e[j] - ec).abs() < 1e-9 {
+            if (ej - ec).abs() < 1e-9 {
                 rescored += 1;
             } else {
-                assert!(
-                    (e[j] - eu).abs() < 1e-5,
-                    "item {j}: {} vs {ec} / {eu}",
-                    e[j]
-                );
+                assert!((ej - eu).abs() < 1e-5, "item {j}: {ej} vs {ec} / {eu}");
             }
-            assert!(e[j] >= ec - 1e-5, "item {j}");
+            assert!(ej >= ec - 1e-5, "item {j}");
         }
         assert!(rescored >= SEARCH_RESCORE, "{rescored}");
         // A smaller share rescores fewer: the items it leaves hold the (larger) Gram bound.
@@ -741,9 +737,9 @@ mod tests {
         // these items do reconstruct below zero somewhere (so the clamp is exercised).
         let small = search_errors(&s, &t, &a, &x, 100, SEARCH_RESCORE);
         assert!((0..100).any(|j| recon(j).0.iter().any(|v| *v < 0.0)));
-        for j in 0..100 {
+        for (j, &sj) in small.iter().enumerate() {
             let f = recon(j).1;
-            assert!((small[j] - s.rel_error(&t, &f)).abs() < 1e-12, "item {j}");
+            assert!((sj - s.rel_error(&t, &f)).abs() < 1e-12, "item {j}");
         }
     }
 }
