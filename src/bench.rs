@@ -18,16 +18,32 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-/// Median wall time of `reps` runs of `f` (seconds), and the last result.
+/// Median wall time of `reps` runs of `f` (seconds; at least one run), and the last result.
 pub(crate) fn time<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, T) {
-    let mut times = Vec::with_capacity(reps);
-    let mut last = None;
-    for _ in 0..reps {
-        let t = Instant::now();
-        last = Some(f());
-        times.push(t.elapsed().as_secs_f64());
+    match try_time::<T, std::convert::Infallible>(reps, || Ok(f())) {
+        Ok(r) => r,
+        Err(never) => match never {},
     }
-    (median(times), last.expect("reps >= 1"))
+}
+
+/// [`time`] of a fallible `f`: the first error ends the runs and is returned.
+pub(crate) fn try_time<T, E>(
+    reps: usize,
+    mut f: impl FnMut() -> std::result::Result<T, E>,
+) -> std::result::Result<(f64, T), E> {
+    let mut run = || -> std::result::Result<(f64, T), E> {
+        let t = Instant::now();
+        let v = f()?;
+        Ok((t.elapsed().as_secs_f64(), v))
+    };
+    let (t0, mut last) = run()?;
+    let mut times = vec![t0];
+    for _ in 1..reps {
+        let (t, v) = run()?;
+        times.push(t);
+        last = v;
+    }
+    Ok((median(times), last))
 }
 
 fn geometry(spec: &str) -> Result<Heightfield> {
@@ -241,4 +257,36 @@ pub fn accuracy(cases: usize, seed: u64, cfg: &BvndfConfig) -> Result<String> {
         summary("all 490 (theta to 89°)", &errs),
         summary("theta_i, theta_o ≤ 85°", &errs85),
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn time_runs_at_least_once_and_try_time_stops_at_the_first_error() {
+        let mut calls = 0;
+        let (t, v) = time(0, || {
+            calls += 1;
+            calls
+        });
+        assert_eq!((calls, v), (1, 1));
+        assert!(t >= 0.0 && t.is_finite());
+        let (_, v) = time(3, || {
+            calls += 1;
+            calls
+        });
+        assert_eq!(v, 4);
+        let mut runs = 0;
+        let r: std::result::Result<(f64, ()), String> = try_time(5, || {
+            runs += 1;
+            if runs == 2 {
+                Err(format!("run {runs}"))
+            } else {
+                Ok(())
+            }
+        });
+        assert_eq!(r.err().as_deref(), Some("run 2"));
+        assert_eq!(runs, 2);
+    }
 }

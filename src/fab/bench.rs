@@ -5,10 +5,10 @@
 use super::export::{export_detail, Decimation};
 use super::profile::Profile;
 use super::{check_detail, millability, CheckOptions};
+use crate::bench::try_time;
 use crate::error::Result;
 use crate::generators::parse_generator;
 use std::path::PathBuf;
-use std::time::Instant;
 
 /// A scratch directory removed when dropped, so an early return (`?`) or a panic leaves nothing
 /// behind either.
@@ -17,25 +17,6 @@ struct Scratch(PathBuf);
 impl Drop for Scratch {
     fn drop(&mut self) {
         let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
-fn time<T>(reps: usize, mut f: impl FnMut() -> Result<T>) -> Result<(f64, T)> {
-    let mut times = Vec::new();
-    let mut last = None;
-    for _ in 0..reps.max(1) {
-        let t = Instant::now();
-        last = Some(f()?);
-        times.push(t.elapsed().as_secs_f64());
-    }
-    match last {
-        Some(v) => Ok((median(times), v)),
-        None => Err(crate::error::Error::new("bench", "no repetition ran")),
     }
 }
 
@@ -51,13 +32,13 @@ pub fn bench_fab(profile: &Profile, reps: usize) -> Result<String> {
     for spec in ["bumps", "vgroove", "fbm"] {
         let hf = parse_generator(spec)?.build()?;
         for patch in [10.0, 40.0] {
-            let (ts, sim) = time(reps, || millability::simulate(&hf, patch, profile))?;
+            let (ts, sim) = try_time(reps, || millability::simulate(&hf, patch, profile))?;
             let opts = CheckOptions {
                 tile_mm: (50.0, 50.0),
                 patch_mm: None,
                 viewing_distance_mm: Some(1e6),
             };
-            let (tc, _) = time(reps, || check_detail(&hf, profile, &opts))?;
+            let (tc, _) = try_time(reps, || check_detail(&hf, profile, &opts))?;
             let side = 128 * sim.report.refine;
             out.push_str(&format!(
                 "| {spec} | {patch} mm | {side}² | {:.1} ms | {:.0} ms |\n",
@@ -80,7 +61,7 @@ pub fn bench_fab(profile: &Profile, reps: usize) -> Result<String> {
             (5.0, None),
             (5.0, Some(Decimation::MaxErrorMm(0.01))),
         ] {
-            let (t, r) = time(1, || {
+            let (t, r) = try_time(1, || {
                 export_detail(&hf, profile, patch, (50.0, 50.0), &dir.0, "bench", dec)
             })?;
             out.push_str(&format!(
