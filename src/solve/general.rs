@@ -183,13 +183,19 @@ pub fn explore(
             match sharper_material(lib, &mats[start_mats[0]].spec, factor, &inner) {
                 Ok((m, st)) => {
                     accumulate(&mut stats, &st);
-                    if let Some(m) = m.filter(|m| !start_mats.contains(m)) {
-                        start_mats.push(m);
-                        stats.notes.push(format!(
-                            "start {s}: {}, the library material closest to the first start's \
-                             sharpened (lobe widths x {factor})",
-                            mats[m].spec
-                        ));
+                    match m {
+                        Some(m) if !start_mats.contains(&m) => {
+                            start_mats.push(m);
+                            stats.notes.push(format!(
+                                "start {s}: {}, the library material closest to the first \
+                                 start's sharpened (lobe widths x {factor})",
+                                mats[m].spec
+                            ));
+                        }
+                        _ => stats.notes.push(format!(
+                            "no new start from the first start's sharpened (lobe widths x \
+                             {factor}): its closest library material is a start already"
+                        )),
                     }
                 }
                 Err(e) => {
