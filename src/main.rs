@@ -253,7 +253,8 @@ enum Cmd {
         #[arg(long, value_delimiter = ',')]
         solvers: Vec<SolverArg>,
         /// Leave out the exhaustive scans (every library item with its own data; seconds per
-        /// case on a large library).
+        /// case on a large library), and with them the count of cases in which each solver found
+        /// the scan's optimum.
         #[arg(long)]
         no_exhaustive: bool,
         /// Also sweep the geometry solver's accuracy knobs (error against run time).

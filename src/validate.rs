@@ -133,6 +133,10 @@ struct Tally {
     errors: Vec<f64>,
     /// Per case, the solver's own stage times (search, re-rank), when it reports them.
     stages: Vec<(f64, f64)>,
+    /// Cases with an exhaustive scan beside the solver, and those where the solver's answer was
+    /// the scan's optimum or no worse ([`as_good`]).
+    compared: usize,
+    optimum: usize,
 }
 
 impl Tally {
@@ -147,6 +151,31 @@ impl Tally {
     fn pct(&self, k: usize) -> f64 {
         100.0 * k as f64 / self.n.max(1) as f64
     }
+    /// Count one case's solver answer against the exhaustive scan's on the same case; the
+    /// log names a case where the solver did worse.
+    fn compare(&mut self, solver: &Answer, scan: &Answer, case: usize, name: &str, quiet: bool) {
+        self.compared += 1;
+        let found = as_good(solver, scan);
+        self.optimum += found as usize;
+        if !found && !quiet {
+            let show = |a: &Answer| {
+                a.0.as_ref().map_or("none".to_string(), |c| {
+                    format!(
+                        "geometry {:?} material {:?} psi {:.0} at {:.2} %",
+                        c.geometry,
+                        c.material,
+                        c.psi_deg,
+                        a.1 * 100.0
+                    )
+                })
+            };
+            eprintln!(
+                "validate: case {case}: {name} did not find the exhaustive optimum: answer {}, scan {}",
+                show(solver),
+                show(scan)
+            );
+        }
+    }
     fn q(v: &[f64], f: f64) -> f64 {
         if v.is_empty() {
             return f64::NAN;
@@ -155,6 +184,21 @@ impl Tally {
         v.sort_by(f64::total_cmp);
         v[((v.len() - 1) as f64 * f).round() as usize]
     }
+}
+
+/// A case's answer: the best candidate and its verified error.
+type Answer = (Option<Candidate>, f64);
+
+/// Whether a solver's answer found the exhaustive scan's optimum: the same item at rotation 0,
+/// or a verified error no larger (to rounding: both errors are sums over the same samples).
+fn as_good(solver: &Answer, scan: &Answer) -> bool {
+    let same = match (&solver.0, &scan.0) {
+        (Some(a), Some(b)) => {
+            a.geometry == b.geometry && a.material == b.material && a.psi_deg == b.psi_deg
+        }
+        _ => false,
+    };
+    same || solver.1 <= scan.1 * (1.0 + 1e-9) + 1e-12
 }
 
 /// The best geometry by an exhaustive scan of every library geometry's own light lobes (material
@@ -331,7 +375,7 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
                    name: &str,
                    solve: &dyn Fn() -> Result<SolverAnswer>,
                    recovered: &dyn Fn(&Candidate) -> bool|
-         -> Result<()> {
+         -> Result<Answer> {
             let t = Instant::now();
             let (best, stages) = solve()?;
             let secs = t.elapsed().as_secs_f64();
@@ -351,7 +395,7 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
                     )),
                 );
             }
-            Ok(())
+            Ok((best, err))
         };
         // The best candidate, and the solver's stage times.
         let first = |r: crate::solve::SolveResult| {
@@ -361,7 +405,7 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
         let is_g = |b: &Candidate| b.geometry == Some(g);
         let is_m = |b: &Candidate| b.material == Some(m);
         if job.runs(Solver::Geometry) {
-            run(
+            let solver = run(
                 &mut tg,
                 "geometry solver",
                 &|| {
@@ -371,17 +415,18 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
                 &is_g,
             )?;
             if job.exhaustive {
-                run(
+                let scan = run(
                     &mut eg,
                     "geometry exhaustive scan",
                     &|| exhaustive_geometry(lib, &look, m, &opt).map(|c| (Some(c), None)),
                     &is_g,
                 )?;
+                tg.compare(&solver, &scan, c + 1, "geometry solver", job.quiet);
             }
         }
         if job.runs(Solver::Material) {
             let hf = library_heightfield(&gi[g].spec)?;
-            run(
+            let solver = run(
                 &mut tm,
                 "material solver",
                 &|| {
@@ -391,12 +436,13 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
                 &is_m,
             )?;
             if job.exhaustive {
-                run(
+                let scan = run(
                     &mut em,
                     "material exhaustive scan",
                     &|| exhaustive_material(lib, &look, g, &opt).map(|c| (Some(c), None)),
                     &is_m,
                 )?;
+                tm.compare(&solver, &scan, c + 1, "material solver", job.quiet);
             }
         }
         if job.runs(Solver::General) {
@@ -468,6 +514,25 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
     }
     if job.runs(Solver::General) {
         out += &row("general (both unknown)", &tgen);
+    }
+    let found: Vec<String> = [("geometry", &tg), ("material", &tm)]
+        .iter()
+        .filter(|(_, t)| t.compared > 0)
+        .map(|(name, t)| {
+            format!(
+                "{name} {} of {} ({:.1} %)",
+                t.optimum,
+                t.compared,
+                100.0 * t.optimum as f64 / t.compared as f64
+            )
+        })
+        .collect();
+    if !found.is_empty() {
+        out += &format!(
+            "\nExhaustive optimum found (the solver's answer is the exhaustive scan's, or its \
+             verified error is no larger): {}.\n",
+            found.join(", ")
+        );
     }
     let stages: Vec<String> = [("geometry", &tg), ("material", &tm), ("general", &tgen)]
         .iter()
@@ -577,4 +642,30 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
         out += &format!("\nPlot {caption}\n");
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn answer(g: usize, psi: f64, err: f64) -> Answer {
+        let mut c = candidate("g", Some(g), "m", Some(0), err);
+        c.psi_deg = psi;
+        (Some(c), err)
+    }
+
+    #[test]
+    fn the_exhaustive_optimum_is_found_by_the_same_item_or_an_answer_no_worse() {
+        let scan = answer(7, 0.0, 0.05);
+        // The same item, whatever its verified error.
+        assert!(as_good(&answer(7, 0.0, 0.05), &scan));
+        // Another item (or a rotation) that is no worse, to rounding.
+        assert!(as_good(&answer(3, 0.0, 0.04), &scan));
+        assert!(as_good(&answer(3, 45.0, 0.05 * (1.0 + 1e-12)), &scan));
+        assert!(as_good(&answer(3, 0.0, 0.0), &answer(7, 0.0, 0.0)));
+        // Worse, or no answer.
+        assert!(!as_good(&answer(3, 0.0, 0.051), &scan));
+        assert!(!as_good(&answer(7, 90.0, 0.06), &scan));
+        assert!(!as_good(&(None, f64::INFINITY), &scan));
+    }
 }

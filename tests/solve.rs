@@ -174,6 +174,15 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
         2,
         "{t}"
     );
+    // Each solver is compared with its scan on the same case.
+    let found = t
+        .lines()
+        .find(|l| l.starts_with("Exhaustive optimum found"))
+        .unwrap_or_default();
+    assert!(
+        found.contains("geometry ") && found.contains(" of 1 (") && found.contains("material "),
+        "{t}"
+    );
     // Its targets cannot be rotated.
     let rotated = biscale::validate::ValidateJob {
         options: SolveOptions {
@@ -214,7 +223,9 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
     };
     let t = biscale::validate::run(&lib, &fast).unwrap();
     assert!(
-        t.contains("| material (geometry fixed) | 1 |") && !t.contains("exhaustive"),
+        t.contains("| material (geometry fixed) | 1 |")
+            && !t.contains("exhaustive")
+            && !t.contains("Exhaustive optimum"),
         "{t}"
     );
 
