@@ -47,7 +47,8 @@ pub const KAPPAS: [f64; 19] = [
 ];
 
 /// Lobes at least this concentrated (width `1/sqrt(kappa)` ≤ 0.1 rad), and with `alpha² kappa`
-/// at least this for every glossy lobe (width ≤ alpha / 10), are evaluated at their centre.
+/// at least this for every glossy lobe (width ≤ alpha / 10), are evaluated at their centre; so
+/// are lobes at [`KAPPA_MAX`] (a planar cluster's delta) whatever the material's width.
 pub const POINT_KAPPA: f64 = 100.0;
 
 /// A material's prefiltered table.
@@ -281,11 +282,12 @@ impl Prefiltered {
     }
 
     /// `F(wi, wo; lobe)`: for a lobe narrower than a tenth of a radian and than a tenth of every
-    /// glossy lobe of the material ([`POINT_KAPPA`]), the material at the lobe's centre,
-    /// `f_r(mu) (mu·wi)+` — exact in the limit, exact for a flat patch, and free of the table's
-    /// interpolation across the `n·wo = 0` cutoff, which a narrow lobe of nearly edge-on facets
-    /// sits on (smooth dimples: 8 % → 0.3 % against the exact method); otherwise multilinear
-    /// interpolation of the table.
+    /// glossy lobe of the material ([`POINT_KAPPA`]), and for a delta ([`KAPPA_MAX`]: a planar
+    /// cluster, such as a flat patch, under a material sharper than any table node resolves, as
+    /// GGX `alpha = 0.001`), the material at the lobe's centre, `f_r(mu) (mu·wi)+` — exact in
+    /// the limit, exact for a flat patch, and free of the table's interpolation across the
+    /// `n·wo = 0` cutoff, which a narrow lobe of nearly edge-on facets sits on (smooth dimples:
+    /// 8 % → 0.3 % against the exact method); otherwise multilinear interpolation of the table.
     pub fn eval(&self, wi: Vec3, wo: Vec3, lobe: &Vmf) -> f64 {
         self.eval_sum(wi, wo, std::slice::from_ref(&(1.0, *lobe)))
     }
@@ -325,10 +327,11 @@ impl Prefiltered {
     /// Whether `lobe` is evaluated at its centre for this material ([`POINT_KAPPA`]).
     #[inline]
     fn is_point(&self, lobe: &Vmf) -> bool {
-        lobe.kappa >= POINT_KAPPA
-            && self
-                .min_width
-                .is_none_or(|a| a * a * lobe.kappa >= POINT_KAPPA)
+        lobe.kappa >= KAPPA_MAX
+            || (lobe.kappa >= POINT_KAPPA
+                && self
+                    .min_width
+                    .is_none_or(|a| a * a * lobe.kappa >= POINT_KAPPA))
     }
 
     /// One lobe's `F`: at its centre when it is a point for this material, else from the table

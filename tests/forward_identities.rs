@@ -63,7 +63,8 @@ fn dirs(p: &[(f64, f64, f64, f64)]) -> Vec<DirPair> {
         .collect()
 }
 
-/// Every material model of the grammar, a sum, and a synthetic MERL file written here.
+/// Every material model of the grammar, a sum, stiff lobes down to GGX `alpha = 0.001` and
+/// Blinn–Phong `n = 1e5`, and a synthetic MERL file written here.
 fn all_materials(dir: &std::path::Path) -> Vec<(String, Material)> {
     let merl = dir.join("synthetic.binary");
     // A smooth, strictly positive table (varies with every index and channel), so that a wrong
@@ -83,6 +84,12 @@ fn all_materials(dir: &std::path::Path) -> Vec<(String, Material)> {
         "blinn:n=60",
         "ct:m=0.19,f0=0.23",
         "ggx:alpha=0.1+lambert:albedo=0.2",
+        // Stiff: lobes far sharper than any node of a prefiltered table (the fast method reads
+        // a flat patch's delta as the material at its centre).
+        "ggx:alpha=0.001",
+        "beckmann:alpha=0.001,f0=0.5",
+        "ward:alpha=0.002",
+        "blinn:n=100000",
     ]
     .iter()
     .map(|s| s.to_string())
