@@ -123,6 +123,68 @@ fn draw(
         .collect()
 }
 
+/// Every parameter at the low (`hi = false`) or the high end of its range, rounded as [`draw`]
+/// rounds a draw.
+fn range_end(
+    params: &BTreeMap<String, Range2>,
+    hi: bool,
+    integer: &dyn Fn(&str) -> bool,
+) -> Vec<(String, f64)> {
+    params
+        .iter()
+        .map(|(k, &[lo, h])| {
+            let v = if hi { h } else { lo };
+            let v = if integer(k) {
+                v.round()
+            } else {
+                crate::material::round_sig4(v)
+            };
+            (k.clone(), v)
+        })
+        .collect()
+}
+
+/// Check that both ends of every family's ranges make valid items (unknown keys, values out of
+/// a generator's or a model's bounds), so that a bad profile fails when it is read, naming the
+/// family and the end, instead of part-way through a build.
+pub fn check_range_ends(prof: &LibraryProfile) -> Result<()> {
+    for (fi, fam) in prof.geometry.family.iter().enumerate() {
+        let gen = crate::generators::parse_generator(&format!("{}:", fam.generator))
+            .map_err(|e| e.within(&format!("geometry.family[{fi}].generator")))?;
+        for hi in [false, true] {
+            let drawn = range_end(&fam.params, hi, &|k| gen.is_integer(k));
+            let mut items = vec![format!("n={}", prof.geometry.resolution)];
+            items.extend(drawn.iter().map(|(k, v)| format!("{k}={v}")));
+            let spec = format!("{}:{}", fam.generator, items.join(","));
+            crate::generators::parse_generator(&spec).map_err(|e| {
+                e.within(&format!(
+                    "geometry.family[{fi}].params, every range at its {} end",
+                    if hi { "high" } else { "low" }
+                ))
+            })?;
+        }
+    }
+    for (fi, fam) in prof.material.family.iter().enumerate() {
+        for hi in [false, true] {
+            let drawn = range_end(&fam.params, hi, &|_| false);
+            let mixes: &[f64] = if fam.model == "lambert" {
+                &[0.0]
+            } else {
+                &prof.material.lambert
+            };
+            for &a in mixes {
+                parse_material(&material_spec(fam, &drawn, a)).map_err(|e| {
+                    e.within(&format!(
+                        "material.family[{fi}].params, every range at its {} end",
+                        if hi { "high" } else { "low" }
+                    ))
+                })?;
+            }
+        }
+    }
+    Ok(())
+}
+
 fn png_files(dirs: &[PathBuf], base: &Path, ctx: &str) -> Result<Vec<PathBuf>> {
     let mut out = Vec::new();
     for d in dirs {

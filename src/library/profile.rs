@@ -143,6 +143,13 @@ pub struct CompressionSection {
     pub initial_rank: usize,
 }
 
+/// Most entries of one item's table (a geometry's binned column or light-lobe record, a
+/// material's prefiltered table): 64 MB in `f32`.
+const MAX_ENTRIES: usize = 1 << 24;
+
+/// Most items of one kind in a profile (the paper's library has 164,431 geometries).
+const MAX_ITEMS: usize = 100_000_000;
+
 /// Where shipped library profiles are looked for, in order (the first holding `NAME.toml` wins):
 /// `profiles/library/` of the source tree this binary was built from, `./profiles/library/`
 /// under the current directory, and next to the executable: `<exe dir>/profiles/library/`, then
@@ -296,30 +303,80 @@ impl LibraryProfile {
     }
 
     fn validate(&self) -> Result<()> {
-        let pos = |key: &str, v: usize, min: usize| {
-            if v < min {
+        let name_ok = !self.name.is_empty()
+            && self.name.len() <= 64
+            && !self.name.starts_with('.')
+            && self
+                .name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'));
+        if !name_ok {
+            return Err(Error::new(
+                "name",
+                format!(
+                    "expected 1 to 64 letters, digits, '-', '_' or '.' (not first), got {:?}: \
+                     the name becomes a directory of the cache",
+                    self.name
+                ),
+            ));
+        }
+        // Bounds keep a typo from asking for terabytes: each is far beyond what a build on
+        // one machine or a cluster can use.
+        let pos = |key: &str, v: usize, min: usize, max: usize| {
+            if v < min || v > max {
                 Err(Error::new(
                     key,
-                    format!("expected an integer >= {min}, got {v}"),
+                    format!("expected an integer in [{min}, {max}], got {v}"),
                 ))
             } else {
                 Ok(())
             }
         };
-        pos("chunk", self.chunk, 1)?;
+        pos("chunk", self.chunk, 1, 1 << 16)?;
         let g = &self.geometry;
-        pos("geometry.resolution", g.resolution, 8)?;
-        pos("geometry.view_theta", g.view_theta, 2)?;
-        pos("geometry.view_phi", g.view_phi, 3)?;
-        pos("geometry.normal_grid", g.normal_grid, 3)?;
-        pos("geometry.rays", g.rays, 1)?;
-        pos("geometry.lobe_clusters", g.lobe_clusters, 1)?;
-        if g.lobe_clusters > 64 {
+        pos("geometry.resolution", g.resolution, 8, 2048)?;
+        pos("geometry.view_theta", g.view_theta, 2, 64)?;
+        pos("geometry.view_phi", g.view_phi, 3, 128)?;
+        pos("geometry.normal_grid", g.normal_grid, 3, 64)?;
+        pos("geometry.rays", g.rays, 1, 1 << 20)?;
+        pos("geometry.lobe_clusters", g.lobe_clusters, 1, 64)?;
+        // One geometry's binned column (f16) and light-lobe record (f32), as GammaLayout and
+        // lightlobes::record_len size them for the library's 7 lights.
+        let views = g.view_theta * g.view_phi;
+        let column = 7 * views * g.normal_grid * g.normal_grid;
+        let record = g.lobe_clusters * (5 + views * 3 + 7 * views * 9);
+        if column > MAX_ENTRIES || record > MAX_ENTRIES {
             return Err(Error::new(
-                "geometry.lobe_clusters",
-                format!("expected at most 64, got {}", g.lobe_clusters),
+                "geometry",
+                format!(
+                    "view_theta × view_phi × normal_grid² and lobe_clusters make {column} binned \
+                     entries and a {record}-float light-lobe record per geometry; at most \
+                     {MAX_ENTRIES} each"
+                ),
             ));
         }
+        let count = |families: usize, total: usize, key: &str| {
+            if total > MAX_ITEMS {
+                Err(Error::new(
+                    key,
+                    format!(
+                        "the {families} families' counts add up to {total}; at most {MAX_ITEMS}"
+                    ),
+                ))
+            } else {
+                Ok(())
+            }
+        };
+        count(g.family.len(), self.geometry_count(), "geometry.family")?;
+        count(
+            self.material.family.len(),
+            self.material
+                .family
+                .iter()
+                .map(|f| f.count.saturating_mul(self.material.lambert.len().max(1)))
+                .fold(0usize, usize::saturating_add),
+            "material.family",
+        )?;
         for (i, f) in g.family.iter().enumerate() {
             let key = format!("geometry.family[{i}]");
             let names: Vec<&str> = crate::generators::list().iter().map(|x| x.0).collect();
@@ -342,10 +399,35 @@ impl LibraryProfile {
             }
         }
         let m = &self.material;
-        pos("material.prefilter.n_half", m.prefilter.n_half, 2)?;
-        pos("material.prefilter.n_theta_mu", m.prefilter.n_theta_mu, 2)?;
-        pos("material.prefilter.n_phi_mu", m.prefilter.n_phi_mu, 2)?;
-        pos("material.prefilter.samples", m.prefilter.samples, 1)?;
+        pos("material.prefilter.n_half", m.prefilter.n_half, 2, 256)?;
+        pos(
+            "material.prefilter.n_theta_mu",
+            m.prefilter.n_theta_mu,
+            2,
+            512,
+        )?;
+        pos("material.prefilter.n_phi_mu", m.prefilter.n_phi_mu, 2, 256)?;
+        pos(
+            "material.prefilter.samples",
+            m.prefilter.samples,
+            1,
+            1 << 16,
+        )?;
+        let table = m.prefilter.n_half
+            * crate::prefilter::KAPPAS.len()
+            * m.prefilter.n_theta_mu
+            * m.prefilter.n_phi_mu;
+        if table > MAX_ENTRIES {
+            return Err(Error::new(
+                "material.prefilter",
+                format!(
+                    "n_half × {} kappas × n_theta_mu × n_phi_mu = {table} entries per material; \
+                     at most {MAX_ENTRIES}",
+                    crate::prefilter::KAPPAS.len()
+                ),
+            ));
+        }
+        pos("material.colours", m.colours, 0, 1 << 16)?;
         for (i, a) in m.lambert.iter().enumerate() {
             if !(0.0..=1.0).contains(a) {
                 return Err(Error::new(
@@ -402,9 +484,14 @@ impl LibraryProfile {
                 ),
             ));
         }
-        pos("compression.max_rank", c.max_rank, 1)?;
-        pos("compression.stream_chunk", c.stream_chunk, 1)?;
-        Ok(())
+        pos("compression.max_rank", c.max_rank, 1, 100_000)?;
+        pos("compression.stream_chunk", c.stream_chunk, 1, 1 << 20)?;
+        pos("compression.oversample", c.oversample, 0, 4096)?;
+        pos("compression.power_iters", c.power_iters, 0, 64)?;
+        pos("compression.initial_rank", c.initial_rank, 1, 100_000)?;
+        // Every family's range ends make valid items now, before any directory is touched
+        // (a draw between them is then valid too, for the generators' and materials' bounds).
+        crate::library::items::check_range_ends(self)
     }
 
     /// Number of geometry items.
@@ -501,6 +588,58 @@ mod tests {
         for d in shipped_dirs() {
             assert!(e.to_string().contains(&d.display().to_string()), "{e}");
         }
+    }
+
+    #[test]
+    fn bad_sizes_names_and_range_ends_fail_when_the_profile_is_read() {
+        let (tiny, _) = LibraryProfile::load("tiny").unwrap();
+        let text = tiny.canonical();
+        let err_all = |edits: &[(&str, &str)]| {
+            let mut t = text.clone();
+            for (from, to) in edits {
+                assert!(t.contains(from), "{from}");
+                t = t.replacen(from, to, 1);
+            }
+            LibraryProfile::parse(&t, "p.toml")
+                .err()
+                .map(|e| e.to_string())
+                .unwrap_or_default()
+        };
+        let err = |from: &str, to: &str| err_all(&[(from, to)]);
+        // Sizes that would ask for terabytes (or hang) are refused, naming the key.
+        let e = err("normal_grid = 12", "normal_grid = 100000");
+        assert!(
+            e.contains("p.toml") && e.contains("geometry.normal_grid"),
+            "{e}"
+        );
+        let e = err("colours = 8", "colours = 100000000000");
+        assert!(e.contains("material.colours"), "{e}");
+        let e = err_all(&[
+            ("view_theta = 8", "view_theta = 64"),
+            ("normal_grid = 12", "normal_grid = 64"),
+        ]);
+        assert!(e.contains("geometry") && e.contains("entries"), "{e}");
+        // The name becomes a cache directory: no path separators.
+        let e = err("name = \"tiny\"", "name = \"../../evil\"");
+        assert!(e.contains("p.toml: name:"), "{e}");
+        assert!(err("name = \"tiny\"", "name = \"\"").contains("name:"));
+        // A range end a generator or a model refuses, or a mistyped key, fails now.
+        let e = err("period = [4.0, 32.0]", "period = [0.0, 32.0]");
+        assert!(
+            e.contains("geometry.family[0].params")
+                && e.contains("low end")
+                && e.contains("period"),
+            "{e}"
+        );
+        let e = err("period = [4.0, 32.0]", "periodd = [4.0, 32.0]");
+        assert!(e.contains("unknown key 'periodd'"), "{e}");
+        let e = err("f0 = [0.04, 1.0]", "f0 = [0.04, 1.5]");
+        assert!(
+            e.contains("material.family[0].params") && e.contains("high end") && e.contains("f0"),
+            "{e}"
+        );
+        // The shipped profile itself is fine.
+        assert!(LibraryProfile::parse(&text, "p.toml").is_ok());
     }
 
     #[test]
