@@ -150,14 +150,14 @@ fn range_end(
 pub fn check_range_ends(prof: &LibraryProfile) -> Result<()> {
     for (fi, fam) in prof.geometry.family.iter().enumerate() {
         let gen = crate::generators::parse_generator(&format!("{}:", fam.generator))
-            .map_err(|e| e.within(&format!("geometry.family[{fi}].generator")))?;
+            .map_err(|e| e.within(format!("geometry.family[{fi}].generator")))?;
         for hi in [false, true] {
             let drawn = range_end(&fam.params, hi, &|k| gen.is_integer(k));
             let mut items = vec![format!("n={}", prof.geometry.resolution)];
             items.extend(drawn.iter().map(|(k, v)| format!("{k}={v}")));
             let spec = format!("{}:{}", fam.generator, items.join(","));
             crate::generators::parse_generator(&spec).map_err(|e| {
-                e.within(&format!(
+                e.within(format!(
                     "geometry.family[{fi}].params, every range at its {} end",
                     if hi { "high" } else { "low" }
                 ))
@@ -174,7 +174,7 @@ pub fn check_range_ends(prof: &LibraryProfile) -> Result<()> {
             };
             for &a in mixes {
                 parse_material(&material_spec(fam, &drawn, a)).map_err(|e| {
-                    e.within(&format!(
+                    e.within(format!(
                         "material.family[{fi}].params, every range at its {} end",
                         if hi { "high" } else { "low" }
                     ))
