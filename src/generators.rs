@@ -227,6 +227,25 @@ fn known_names() -> String {
 }
 
 /// Parse and validate a spec `name:key=value,...`. Errors name the spec and the key.
+/// `spec` with `f` applied to the path of its `file=PATH` key (a texture generator's image), the
+/// rest unchanged; a spec without that key comes back as it is. Scenes use it to resolve the
+/// path against the scene file's directory.
+pub fn map_file_key(spec: &str, f: impl Fn(&str) -> String) -> String {
+    match spec.split_once(':') {
+        Some((head, rest)) if rest.split(',').any(|kv| kv.trim().starts_with("file=")) => {
+            let items: Vec<String> = rest
+                .split(',')
+                .map(|kv| match kv.trim().strip_prefix("file=") {
+                    Some(p) => format!("file={}", f(p)),
+                    None => kv.to_string(),
+                })
+                .collect();
+            format!("{head}:{}", items.join(","))
+        }
+        _ => spec.to_string(),
+    }
+}
+
 pub fn parse_generator(spec: &str) -> Result<Generator> {
     let ctx = spec.trim();
     let (name, rest) = match ctx.split_once(':') {
@@ -1056,6 +1075,18 @@ mod tests {
         "brushed:n=64,slope=0.3,seed=4",
         "brushed:n=100,slope=0.2,slope_y=0.1,kmin=1,kmax=25,seed=2",
     ];
+
+    #[test]
+    fn file_key_of_a_texture_spec_is_mapped_and_nothing_else() {
+        let f = |p: &str| format!("/scene/{p}");
+        assert_eq!(
+            map_file_key("texture:file=wood.png,patch=1", f),
+            "texture:file=/scene/wood.png,patch=1"
+        );
+        assert_eq!(map_file_key("texture:tex=cells", f), "texture:tex=cells");
+        assert_eq!(map_file_key("bumps:n=32", f), "bumps:n=32");
+        assert_eq!(map_file_key("wood.png", f), "wood.png");
+    }
 
     #[test]
     fn every_generator_builds_is_periodic_and_deterministic() {

@@ -136,11 +136,24 @@ pub fn load_heightmap(path: &Path, patch_size_mm: f64, height_scale: f64) -> Res
     Heightfield::new(cols, rows, z, cell_mm, ctx)
 }
 
-/// Whether a geometry reference names a file (an existing file, or a name ending in `.npy`,
-/// `.png` or `.obj`) rather than a procedural spec.
+/// Whether a geometry reference names a file (an existing file or directory, or a name ending in
+/// `.npy`, `.png` or `.obj` that does not start with a generator's name and a colon, as
+/// `texture:file=wood.png` does) rather than a procedural spec.
 pub fn is_heightmap_file(spec: &str) -> bool {
-    let lower = spec.trim().to_ascii_lowercase();
-    Path::new(spec).is_file() || [".npy", ".png", ".obj"].iter().any(|e| lower.ends_with(e))
+    let t = spec.trim();
+    if Path::new(t).exists() {
+        return true;
+    }
+    if let Some((head, _)) = t.split_once(':') {
+        if crate::generators::list()
+            .iter()
+            .any(|(name, _)| *name == head)
+        {
+            return false;
+        }
+    }
+    let lower = t.to_ascii_lowercase();
+    [".npy", ".png", ".obj"].iter().any(|e| lower.ends_with(e))
 }
 
 /// Samples along x of an OBJ resampled to a heightfield (the generators' default resolution).
@@ -214,6 +227,15 @@ mod tests {
     use super::*;
     use crate::npy::write_npy_f64;
     use crate::testdir::TestDir;
+
+    #[test]
+    fn a_generator_spec_naming_an_image_is_not_a_heightmap_file() {
+        assert!(!is_heightmap_file("texture:file=wood.png,patch=1"));
+        assert!(!is_heightmap_file("texture:file=wood.png"));
+        assert!(is_heightmap_file("wood.png"));
+        assert!(is_heightmap_file("maps/relief.NPY"));
+        assert!(!is_heightmap_file("bumps:n=32"));
+    }
 
     #[test]
     fn npy_units() {

@@ -153,7 +153,8 @@ impl Scene {
     }
 
     /// Make the scene's relative paths — a fabrication or library profile given as a path, a
-    /// heightmap `fixed_geometry`, a MERL file in `target` or `fixed_material` — relative to
+    /// heightmap `fixed_geometry` or the image of a `texture:file=PATH` one, a MERL file in
+    /// `target` or `fixed_material` — relative to
     /// `dir` (the scene file's directory), so a scene runs the same from any working
     /// directory. A relative path that exists only from the working directory is kept as it is.
     pub fn resolve_paths(&mut self, dir: &Path) {
@@ -175,6 +176,8 @@ impl Scene {
         if let Some(g) = &mut self.fixed_geometry {
             if crate::heightmap_io::is_heightmap_file(g) {
                 *g = under(g);
+            } else {
+                *g = crate::generators::map_file_key(g, under);
             }
         }
         self.target = crate::material::map_path_terms(&self.target, under);
@@ -287,6 +290,23 @@ impl Scene {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn relative_paths_are_taken_against_the_scene_directory() {
+        let mut s = Scene::builtin().unwrap();
+        s.fixed_geometry = Some("texture:file=tex/wood.png,patch=1".into());
+        s.resolve_paths(Path::new("/scenes"));
+        assert_eq!(
+            s.fixed_geometry.as_deref(),
+            Some("texture:file=/scenes/tex/wood.png,patch=1")
+        );
+        s.fixed_geometry = Some("maps/relief.npy".into());
+        s.resolve_paths(Path::new("/scenes"));
+        assert_eq!(s.fixed_geometry.as_deref(), Some("/scenes/maps/relief.npy"));
+        s.fixed_geometry = Some("bumps:n=32".into());
+        s.resolve_paths(Path::new("/scenes"));
+        assert_eq!(s.fixed_geometry.as_deref(), Some("bumps:n=32"));
+    }
 
     #[test]
     fn builtin_parses_and_bad_scenes_name_the_key() {
