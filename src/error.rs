@@ -48,3 +48,28 @@ impl fmt::Display for Error {
 impl std::error::Error for Error {}
 
 pub type Result<T> = std::result::Result<T, Error>;
+
+/// A number as an error message shows it: as written for ordinary magnitudes, in scientific
+/// notation for extreme ones (`1e308`, not 309 digits).
+pub fn show_num(v: f64) -> String {
+    let a = v.abs();
+    if v.is_finite() && v != 0.0 && !(1e-9..1e15).contains(&a) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn extreme_numbers_are_shown_short() {
+        use super::show_num;
+        assert_eq!(show_num(1e308), "1e308");
+        assert_eq!(show_num(-1e-308), "-1e-308");
+        assert_eq!(show_num(0.02787), "0.02787");
+        assert_eq!(show_num(1.5), "1.5");
+        assert_eq!(show_num(0.0), "0");
+        assert_eq!(show_num(f64::NAN), "NaN");
+    }
+}

@@ -14,8 +14,9 @@
 //! Orientation: column index = x, row index = y; grooves run along y (heights vary with x).
 //! Rotating a pattern is done elsewhere (design notes, Sec. 1).
 
-use crate::error::{Error, Result};
+use crate::error::{show_num, Error, Result};
 use crate::heightfield::Heightfield;
+use crate::material::fmt_num;
 use crate::rng::Rng;
 use std::f64::consts::{PI, TAU};
 use std::path::Path;
@@ -349,10 +350,6 @@ fn keys_of(def: &GenDef) -> String {
         .join(", ")
 }
 
-fn fmt_num(v: f64) -> String {
-    format!("{v}")
-}
-
 impl Generator {
     /// The generator's kind, e.g. `"vgroove"`.
     pub fn kind(&self) -> &'static str {
@@ -479,7 +476,7 @@ impl Generator {
             let err = |what: String| {
                 Err(Error::new(
                     ctx,
-                    format!("key '{key}': {what}, got {}", fmt_num(x)),
+                    format!("key '{key}': {what}, got {}", show_num(x)),
                 ))
             };
             if !x.is_finite() {
@@ -506,7 +503,7 @@ impl Generator {
                         return err("expected at least 2 samples".into());
                     }
                     if x > n {
-                        return err(format!("expected at most n = {} samples", fmt_num(n)));
+                        return err(format!("expected at most n = {} samples", show_num(n)));
                     }
                 }
                 Rule::Fraction => {

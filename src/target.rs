@@ -5,7 +5,7 @@
 //! on top: brightness (a factor) and contrast (Eq. 16, `(f - tau) c + tau` with `tau` the mean of
 //! `f_r` over the bidirectional domain, clamped at 0).
 
-use crate::error::{Error, Result};
+use crate::error::{show_num, Error, Result};
 use crate::frame::{dir_from_rad, rotate_z, Vec3};
 
 /// Rotate `w` by `a` radians about +y.
@@ -65,10 +65,10 @@ impl Target {
     }
 
     pub fn with_brightness(mut self, b: f64) -> Result<Self> {
-        if !(b.is_finite() && b >= 0.0) {
+        if !(b.is_finite() && b > 0.0 && b <= 1e6) {
             return Err(Error::new(
                 "brightness",
-                format!("{b}: expected a non-negative factor"),
+                format!("{}: expected a factor in (0, 1e6] (1 = unchanged; a black target has no relative error to match)", show_num(b)),
             ));
         }
         self.brightness = b;
@@ -76,10 +76,13 @@ impl Target {
     }
 
     pub fn with_contrast(mut self, c: f64) -> Result<Self> {
-        if !(c.is_finite() && c >= 0.0) {
+        if !(c.is_finite() && (0.0..=1e3).contains(&c)) {
             return Err(Error::new(
                 "contrast",
-                format!("{c}: expected a non-negative factor (1 = unchanged)"),
+                format!(
+                    "{}: expected a factor in [0, 1000] (1 = unchanged)",
+                    show_num(c)
+                ),
             ));
         }
         self.contrast = c;
@@ -96,8 +99,8 @@ impl Target {
     /// meant for glossy targets.
     pub fn with_angular(mut self, sx: f64, sy: f64) -> Result<Self> {
         for (k, v) in [("blur x", sx), ("blur y", sy)] {
-            if !(v.is_finite() && v > 0.0 && v <= 100.0) {
-                return Err(Error::new(k, format!("{v}: expected a factor in (0, 100] (1 = unchanged, > 1 blurs, < 1 sharpens)")));
+            if !(v.is_finite() && (0.01..=100.0).contains(&v)) {
+                return Err(Error::new(k, format!("{}: expected a factor in [0.01, 100] (1 = unchanged, > 1 blurs, < 1 sharpens)", show_num(v))));
             }
         }
         self.warp = [sx, sy];

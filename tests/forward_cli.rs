@@ -189,6 +189,36 @@ fn nonsense_input_is_rejected_clearly() {
     }
 }
 
+/// Options out of their ranges fail before any work (no library is opened or built), naming the
+/// option and the range, for the solver commands as for `forward`.
+#[test]
+fn solver_options_out_of_range_fail_before_any_work() {
+    let cases: &[(&[&str], &str)] = &[
+        (&["solve", "--beta", "2"], "[0, 1]"),
+        (&["solve", "--beta", "nan"], "[0, 1]"),
+        (&["solve", "--stop-below", "nan"], "[0, 1]"),
+        (&["solve", "--bound", "-1"], "[0.000001, 10]"),
+        (&["solve", "-k", "0"], "[1, 1000]"),
+        (&["solve", "--psi", "0"], "[1, 360]"),
+        (&["solve", "--brightness", "0"], "[0.000001, 1000000]"),
+        (&["solve", "--contrast", "1e308"], "[0, 1000]"),
+        (&["validate", "--cases", "0"], "[1, 1000000]"),
+        (&["forward", "--exact-samples", "0"], "[1, 16]"),
+    ];
+    for (args, range) in cases {
+        let out = Command::new(env!("CARGO_BIN_EXE_biscale"))
+            .args(*args)
+            .output()
+            .expect("run the biscale binary");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(
+            err.contains(args[1]) && err.contains(range) && !err.contains("panicked"),
+            "{args:?}: {err}"
+        );
+    }
+}
+
 /// Parse a forward CSV: header and rows of six numbers.
 fn read_out(path: &Path) -> (String, Vec<[f64; 6]>) {
     let text = std::fs::read_to_string(path).unwrap();

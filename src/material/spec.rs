@@ -110,7 +110,10 @@ impl<'a> Params<'a> {
             let lb = if lo_open { "(" } else { "[" };
             return Err(Error::new(
                 format!("'{model}'"),
-                format!("{key}={v} is out of range, expected a value in {lb}{lo}, {hi}]"),
+                format!(
+                    "{key}={} is out of range, expected a value in {lb}{lo}, {hi}]",
+                    crate::error::show_num(v)
+                ),
             ));
         }
         Ok(v)

@@ -159,10 +159,13 @@ pub fn parse_colour(s: &str) -> Result<[f64; 3]> {
                 format!("'{s}': expected r,g,b, e.g. 0.8,0.5,0.2"),
             )
         })?;
-    if v.len() != 3 || v.iter().any(|x| !(x.is_finite() && *x >= 0.0)) {
+    if v.len() != 3
+        || v.iter().any(|x| !(x.is_finite() && *x >= 0.0 && *x <= 1e6))
+        || v.iter().all(|x| *x == 0.0)
+    {
         return Err(Error::new(
             "--colour",
-            format!("'{s}': expected three numbers >= 0"),
+            format!("'{s}': expected three numbers in [0, 1e6], not all 0"),
         ));
     }
     Ok([v[0], v[1], v[2]])
