@@ -240,6 +240,20 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
         serde_json::from_slice(&std::fs::read(out.join("t1/summary.json")).unwrap()).unwrap();
     let details = summary["details"].as_array().unwrap();
     assert!(!details.is_empty(), "{text}");
+    // A budget no mesh of the tile fits is reported as such, not as kept.
+    let (out_b, job_b) = design_job(
+        "design-budget",
+        &dir,
+        "name = \"t2\"\ntarget = \"ward:alpha=0.2\"\nfixed_material = \"ggx:alpha=0.2,f0=0.9\"\n\
+         decimate_max_error_mm = 0.01\ntriangle_budget = 3\n",
+    );
+    biscale::design::run(&job_b).unwrap();
+    let log = std::fs::read_to_string(out_b.join("t2/summary.json")).unwrap();
+    assert!(
+        log.contains("no mesh of this tile fits triangle_budget = 3")
+            && !log.contains("the budget was kept"),
+        "{log}"
+    );
     let d = &details[0];
     for key in [
         "patch_mm",

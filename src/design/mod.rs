@@ -480,7 +480,8 @@ pub fn run(job: &DesignJob) -> Result<String> {
                 );
                 if !ex.budget_met {
                     let why = match (scene.decimate_max_error_mm, scene.triangle_budget) {
-                        (Some(e), Some(b)) => format!(
+                        // The budget fits, at a larger error than asked for.
+                        (Some(e), Some(b)) if ex.triangles <= b => format!(
                             "within decimate_max_error_mm = {e} mm the mesh has more than \
                              triangle_budget = {b} triangles; the budget was kept, at a height \
                              error of {:.4} mm",
