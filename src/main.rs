@@ -342,7 +342,8 @@ enum FinalArg {
 enum LibraryCmd {
     /// Build a library from a profile (profiles/library/<name>.toml or a path), whole or one shard.
     Build {
-        /// Profile name (tiny, default, paper) or path to a profile TOML.
+        /// Profile name (a file of profiles/library/: tiny, default, paper16, paper4, paper) or
+        /// path to a profile TOML.
         #[arg(long, default_value = "default")]
         profile: String,
         /// Output directory (default: the cache entry of the profile).
