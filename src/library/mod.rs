@@ -149,14 +149,33 @@ pub fn cache_path(prof: &LibraryProfile, root: &Path) -> PathBuf {
         .join(format!("{}-{}", prof.name, &prof.hash()[..12]))
 }
 
+/// Profiles with more geometries than this are not built as a side effect of another command
+/// ([`ensure`]): `paper16` (10,277, about 6 minutes on 2 cores) is, `paper4` (41,108, about
+/// 20 minutes) and `paper` (about an hour) need `biscale library build`.
+pub const AUTO_BUILD_MAX_GEOMETRIES: usize = 20_000;
+
 /// Open the cached library of `profile` (a name or a path), building it first if it is missing
-/// or incomplete (a half-built one resumes).
+/// or incomplete (a half-built one resumes) and no larger than [`AUTO_BUILD_MAX_GEOMETRIES`].
 pub fn ensure(profile: &str, cache: Option<&Path>, progress: &Progress) -> Result<Library> {
     let (prof, ppath) = LibraryProfile::load(profile)?;
     let dir = cache_path(&prof, &cache_root(cache));
     if dir.join("manifest.json").exists() {
         progress.note(&format!("library: using {} ({})", dir.display(), prof.name));
         return Library::open(&dir);
+    }
+    let n = prof.geometry_count();
+    if n > AUTO_BUILD_MAX_GEOMETRIES {
+        return Err(Error::new(
+            format!("library profile '{}'", prof.name),
+            format!(
+                "its library ({n} geometries) is not built in {}, and one that large (more than \
+                 {AUTO_BUILD_MAX_GEOMETRIES} geometries) is not built as a side effect: build it \
+                 first with `biscale library build --profile {profile}{}` (resumable, and it \
+                 can be sharded over a cluster: docs/cluster), or pass --library DIR",
+                dir.display(),
+                cache.map_or(String::new(), |c| format!(" --cache-dir {}", c.display()))
+            ),
+        ));
     }
     progress.note(&format!(
         "library: building profile '{}' into {} (first use; later runs reuse it)",
@@ -392,5 +411,27 @@ impl Library {
             }
         }
         Ok(self.manifest.files.len())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testdir::TestDir;
+
+    #[test]
+    fn a_paper_scale_library_is_not_built_as_a_side_effect() {
+        let cache = TestDir::new("ensure-paper");
+        let e = ensure("paper", Some(&cache), &Progress { quiet: true })
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(
+            e.contains("164431 geometries")
+                && e.contains("biscale library build --profile paper --cache-dir"),
+            "{e}"
+        );
+        // Nothing was started.
+        assert!(!cache.join("libraries").exists());
     }
 }
