@@ -49,6 +49,36 @@ fn process_tag() -> &'static str {
 }
 
 /// A fresh temporary name next to `path`: `.NAME.tmp-HOST-PID-NONCE-COUNT`.
+/// Check, before any work, that a directory can hold output: `dir` is a directory, or does not
+/// exist and its nearest existing ancestor is one (it is made when the output is written).
+/// `what` names the option in the error.
+pub fn check_output_dir(dir: &Path, what: &str) -> Result<()> {
+    let mut p = dir;
+    loop {
+        if p.as_os_str().is_empty() {
+            return Ok(()); // the working directory
+        }
+        if p.exists() {
+            return if p.is_dir() {
+                Ok(())
+            } else {
+                Err(Error::new(
+                    what,
+                    format!(
+                        "{} is not a directory, so {} cannot be written",
+                        p.display(),
+                        dir.display()
+                    ),
+                ))
+            };
+        }
+        match p.parent() {
+            Some(up) => p = up,
+            None => return Ok(()),
+        }
+    }
+}
+
 pub fn temp_path(path: &Path) -> PathBuf {
     let name = path
         .file_name()
@@ -155,6 +185,27 @@ pub fn write_with(
 mod tests {
     use super::*;
     use crate::testdir::TestDir;
+
+    #[test]
+    fn output_directories_under_a_file_are_refused_before_any_work() {
+        let d = crate::testdir::TestDir::new("outdir");
+        let file = d.join("f.csv");
+        std::fs::write(&file, "x").unwrap();
+        assert!(check_output_dir(&d, "--outputs").is_ok());
+        assert!(check_output_dir(&d.join("new/deeper"), "--outputs").is_ok());
+        let e = check_output_dir(&file, "--outputs")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("--outputs") && e.contains("f.csv") && e.contains("not a directory"),
+            "{e}"
+        );
+        let e = check_output_dir(&file.join("sub"), "--plot")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("--plot"), "{e}");
+        assert!(check_output_dir(Path::new(""), "--out").is_ok());
+    }
 
     #[test]
     fn failed_write_leaves_nothing() {

@@ -335,6 +335,16 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
              cannot be rotated: use --psi 1 and no --sweep or --plot",
         ));
     }
+    if let Some(p) = &job.plot {
+        let dir = p.parent().unwrap_or(std::path::Path::new(""));
+        crate::atomic_write::check_output_dir(dir, "--plot")?;
+        if p.is_dir() {
+            return Err(Error::new(
+                "--plot",
+                format!("{} is a directory; expected a PNG file name", p.display()),
+            ));
+        }
+    }
     let mi = lib.material_items()?;
     let gi = lib.geometry_items()?;
     let mut rng = Rng::new(job.seed);

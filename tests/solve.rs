@@ -778,4 +778,36 @@ fn design_checks_inputs_first_and_reads_paths_beside_the_scene() {
         "fixed_material = \"ggx:alpha=0.1\"\nheightmap_patch_mm = 5\n",
         "heightmap_patch_mm",
     );
+    // Without --library, an unknown library profile is named by its key, before the existing
+    // output (u1/, from the run above) is looked at; an --outputs that is a file fails before
+    // the solve.
+    std::fs::write(
+        &scene,
+        text.replace("library_profile = \"tiny\"", "library_profile = \"nope\""),
+    )
+    .unwrap();
+    let no_force = biscale::design::DesignJob {
+        library: None,
+        force: false,
+        ..job.clone()
+    };
+    let e = biscale::design::run(&no_force).err().unwrap().to_string();
+    assert!(
+        e.contains("u1.toml: key `library_profile`") && e.contains("'nope'"),
+        "{e}"
+    );
+    std::fs::write(&scene, &text).unwrap();
+    let file = out.join("a-file");
+    std::fs::write(&file, "x").unwrap();
+    let e = biscale::design::run(&biscale::design::DesignJob {
+        outputs: file,
+        ..job.clone()
+    })
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(
+        e.contains("--outputs") && e.contains("not a directory"),
+        "{e}"
+    );
 }

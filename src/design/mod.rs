@@ -172,6 +172,11 @@ pub fn run(job: &DesignJob) -> Result<String> {
         Fixed::Geometry(hf, _) => Some(hf.clone()),
         _ => None,
     };
+    if job.library.is_none() {
+        crate::library::profile::LibraryProfile::load(&scene.library_profile)
+            .map_err(|e| e.within(ctx("library_profile")))?;
+    }
+    crate::atomic_write::check_output_dir(&job.outputs, "--outputs")?;
     let out_dir = job.outputs.join(&scene.name);
     if out_dir.exists() && !job.force {
         return Err(Error::new(
