@@ -136,7 +136,7 @@ enum Cmd {
         pairs: Option<PathBuf>,
         #[arg(long, value_enum, default_value = "fast")]
         method: MethodArg,
-        /// Output CSV (written atomically). Default: standard output.
+        /// Output CSV (written atomically). Default, or `-`: standard output.
         #[arg(long, short = 'o')]
         out: Option<PathBuf>,
         /// Physical side of one heightmap period in mm.
@@ -505,6 +505,8 @@ fn main() -> ExitCode {
             build,
             quiet,
         } => {
+            // `--out -` is standard output, as when --out is left out.
+            let out = out.filter(|p| p.as_os_str() != "-");
             let to_stdout = out.is_none();
             let job = ForwardJob {
                 geometry,

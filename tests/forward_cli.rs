@@ -280,6 +280,25 @@ fn happy_path_exact_and_fast() {
         // the angle columns echo the pairs file
         assert_eq!(rows[2][..4], [60.0, 10.0, 45.0, 200.0]);
     }
+    // `--out -` is standard output (run in the test's directory: no file named `-` appears).
+    let out = Command::new(env!("CARGO_BIN_EXE_biscale"))
+        .current_dir(&*dir)
+        .args([
+            "forward",
+            "--geometry",
+            "vgroove:n=32",
+            "--material",
+            "lambert:albedo=0.5",
+        ])
+        .args(["--pairs", pairs.to_str().unwrap(), "--out", "-", "--quiet"])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success() && stdout.starts_with("theta_i,phi_i,theta_o,phi_o,fbar,brdf"),
+        "{stdout}"
+    );
+    assert!(!dir.join("-").exists());
 }
 
 #[test]

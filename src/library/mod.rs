@@ -244,6 +244,13 @@ pub struct Library {
 impl Library {
     /// Read the manifest and the profile; no array is touched.
     pub fn open(dir: &Path) -> Result<Self> {
+        if dir.exists() && !dir.is_dir() {
+            return Err(Error::new(
+                dir.display().to_string(),
+                "is a file, not a library directory (a library is the directory `biscale library \
+                 build --out DIR` makes)",
+            ));
+        }
         if !dir.is_dir() {
             return Err(Error::new(
                 dir.display().to_string(),

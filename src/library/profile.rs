@@ -243,7 +243,7 @@ fn absolute_dir(d: &Path, base: &Path, ctx: &str) -> Result<PathBuf> {
 /// component), else a shipped profile's name.
 pub fn is_path(name_or_path: &str) -> bool {
     let p = Path::new(name_or_path);
-    p.extension().is_some_and(|e| e == "toml") || p.components().count() > 1
+    p.extension().is_some_and(|e| e == "toml") || p.components().count() > 1 || p.is_file()
 }
 
 impl LibraryProfile {
