@@ -606,6 +606,18 @@ fn veds_are_within_the_bound_and_never_the_same_pair() {
             }
         }
     }
+    // A look the tiny library cannot reproduce within the bound: the closest combination
+    // tried, and a note that says so.
+    let far = Look::from_spec("blinn:n=60+lambert:albedo=0.2", Default::default(), None).unwrap();
+    let r = biscale::solve::veds::solve(&lib, &far, &opt, &g, 5, 0.01, 0.98).unwrap();
+    let note = r.stats.notes.last().unwrap();
+    assert!(
+        r.candidates.len() == 1
+            && r.candidates[0].error > 0.01
+            && note.contains("no combination found within 1.0 %"),
+        "{note}: {:?}",
+        r.candidates
+    );
 }
 
 /// With the material left free, refinement also turns the material's parameters and the

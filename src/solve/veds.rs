@@ -11,7 +11,8 @@
 //!    kept if, against every kept one, its geometry or its material differs — another groove for
 //!    the same metal is another detail, but the same pair twice is not.
 //!
-//! The notes say how many details each pass kept.
+//! The notes say how many details each pass kept. When none is within the bound, the closest
+//! combination tried is returned instead, and a note says so.
 
 use super::general::{explore, finalize, GeneralOptions};
 use super::{Look, SolveOptions, SolveResult};
@@ -65,6 +66,8 @@ pub fn solve(
     let mut per_pass = [0usize; 2];
     // Finalised combinations over the bound are not evaluated twice.
     let mut rejected: Vec<(Option<usize>, Option<usize>)> = Vec::new();
+    // The closest combination over the bound, shown when none is within it.
+    let mut closest: Option<super::Candidate> = None;
     for (pass, strict) in [true, false].into_iter().enumerate() {
         let mut tried = 0;
         for c in &pool {
@@ -97,7 +100,14 @@ pub fn solve(
                     kept.push(f);
                     per_pass[pass] += 1;
                 }
-                _ => rejected.push(key),
+                f => {
+                    if let Some(f) = f.filter(|f| f.error.is_finite()) {
+                        if closest.as_ref().is_none_or(|b| f.error < b.error) {
+                            closest = Some(f);
+                        }
+                    }
+                    rejected.push(key)
+                }
             }
         }
     }
@@ -108,6 +118,16 @@ pub fn solve(
         per_pass[0],
         per_pass[1]
     ));
+    if kept.is_empty() {
+        if let Some(c) = closest {
+            stats.notes.push(format!(
+                "no combination found within {:.1} %: the closest, at {:.1} %, is shown instead",
+                bound * 100.0,
+                c.error * 100.0
+            ));
+            kept.push(c);
+        }
+    }
     Ok(SolveResult {
         candidates: kept,
         stats,
