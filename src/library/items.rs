@@ -112,15 +112,19 @@ fn draw(
             } else {
                 lo + u * (hi - lo)
             };
-            let v = if integer(k) {
-                v.round()
-            } else {
-                // Four significant digits keep names readable and specs exact.
-                crate::material::round_sig4(v)
-            };
-            (k.clone(), v)
+            (k.clone(), rounded(k, v, integer))
         })
         .collect()
+}
+
+/// A drawn value as an item takes it: integer parameters rounded, the others to four
+/// significant digits (which keep names readable and specs exact).
+fn rounded(k: &str, v: f64, integer: &dyn Fn(&str) -> bool) -> f64 {
+    if integer(k) {
+        v.round()
+    } else {
+        crate::material::round_sig4(v)
+    }
 }
 
 /// Every parameter at the low (`hi = false`) or the high end of its range, rounded as [`draw`]
@@ -132,15 +136,7 @@ fn range_end(
 ) -> Vec<(String, f64)> {
     params
         .iter()
-        .map(|(k, &[lo, h])| {
-            let v = if hi { h } else { lo };
-            let v = if integer(k) {
-                v.round()
-            } else {
-                crate::material::round_sig4(v)
-            };
-            (k.clone(), v)
-        })
+        .map(|(k, &[lo, h])| (k.clone(), rounded(k, if hi { h } else { lo }, integer)))
         .collect()
 }
 
