@@ -136,21 +136,23 @@ pub fn load_heightmap(path: &Path, patch_size_mm: f64, height_scale: f64) -> Res
     Heightfield::new(cols, rows, z, cell_mm, ctx)
 }
 
-/// Whether a geometry reference names a file (an existing file or directory, or a name ending in
-/// `.npy`, `.png` or `.obj` that does not start with a generator's name and a colon, as
-/// `texture:file=wood.png` does) rather than a procedural spec.
+/// Whether a geometry reference names a file (an existing file; otherwise, unless it is a
+/// generator's name or starts with one and a colon, as `texture:file=wood.png` does, an existing
+/// directory or a name ending in `.npy`, `.png` or `.obj`) rather than a procedural spec.
 pub fn is_heightmap_file(spec: &str) -> bool {
     let t = spec.trim();
-    if Path::new(t).exists() {
+    if Path::new(t).is_file() {
         return true;
     }
-    if let Some((head, _)) = t.split_once(':') {
-        if crate::generators::list()
-            .iter()
-            .any(|(name, _)| *name == head)
-        {
-            return false;
-        }
+    let head = t.split_once(':').map_or(t, |(head, _)| head);
+    if crate::generators::list()
+        .iter()
+        .any(|(name, _)| *name == head)
+    {
+        return false;
+    }
+    if Path::new(t).is_dir() {
+        return true; // so that loading it says it is a directory
     }
     let lower = t.to_ascii_lowercase();
     [".npy", ".png", ".obj"].iter().any(|e| lower.ends_with(e))
