@@ -127,9 +127,13 @@ pub fn load_heightmap(path: &Path, patch_size_mm: f64, height_scale: f64) -> Res
         return Err(Error::new(
             ctx,
             format!(
-                "sample at row {}, column {} overflows after scaling (height scale {height_scale})",
+                "sample at row {}, column {} overflows after scaling to grid cells (height scale \
+                 {}, patch size {} mm: {} mm per cell)",
                 i / cols,
-                i % cols
+                i % cols,
+                crate::error::show_num(height_scale),
+                crate::error::show_num(patch_size_mm),
+                crate::error::show_num(cell_mm)
             ),
         ));
     }
