@@ -18,34 +18,16 @@ struct Cli {
     cmd: Cmd,
 }
 
-/// A clap value parser: a finite number in `[lo, hi]`, so that a bad option fails before any
-/// work (instead of an empty answer, or a clamped value the user did not ask for).
-fn number_in(lo: f64, hi: f64) -> impl Fn(&str) -> Result<f64, String> + Clone + Send + Sync {
-    move |s: &str| {
-        let v: f64 = s
-            .trim()
-            .parse()
-            .map_err(|_| format!("expected a number in [{lo}, {hi}], got '{s}'"))?;
-        if v.is_finite() && (lo..=hi).contains(&v) {
-            Ok(v)
-        } else {
-            Err(format!("expected a number in [{lo}, {hi}], got {s}"))
-        }
-    }
-}
-
-/// A clap value parser: a whole number in `[lo, hi]`.
-fn count_in(lo: usize, hi: usize) -> impl Fn(&str) -> Result<usize, String> + Clone + Send + Sync {
-    move |s: &str| {
-        let v: usize = s
-            .trim()
-            .parse()
-            .map_err(|_| format!("expected a whole number in [{lo}, {hi}], got '{s}'"))?;
-        if (lo..=hi).contains(&v) {
-            Ok(v)
-        } else {
-            Err(format!("expected a whole number in [{lo}, {hi}], got {v}"))
-        }
+/// A clap value parser: a number (`f64`) or a whole number (`usize`) in `[lo, hi]`, so that a
+/// bad option fails before any work (instead of an empty answer, or a clamped value the user
+/// did not ask for). NaN and infinities fail the range test of a finite range.
+fn in_range<T>(lo: T, hi: T) -> impl Fn(&str) -> Result<T, String> + Clone + Send + Sync
+where
+    T: std::str::FromStr + PartialOrd + std::fmt::Display + Copy + Send + Sync,
+{
+    move |s: &str| match s.trim().parse::<T>() {
+        Ok(v) if (lo..=hi).contains(&v) => Ok(v),
+        _ => Err(format!("expected a number in [{lo}, {hi}], got '{s}'")),
     }
 }
 
@@ -146,7 +128,7 @@ enum Cmd {
         #[arg(long, default_value_t = 1.0)]
         height_scale: f64,
         /// Exact method: points per facet side (s² visibility samples per facet).
-        #[arg(long, default_value_t = 2, value_parser = count_in(1, 16))]
+        #[arg(long, default_value_t = 2, value_parser = in_range::<usize>(1, 16))]
         exact_samples: usize,
         /// Fast method: the compact BVNDF's build.
         #[command(flatten)]
@@ -162,10 +144,10 @@ enum Cmd {
         #[arg(long, short = 't', default_value = "ward:ax=0.30,ay=0.08")]
         target: String,
         /// Brightness edit (factor, Sec. 7).
-        #[arg(long, default_value_t = 1.0, value_parser = number_in(1e-6, 1e6))]
+        #[arg(long, default_value_t = 1.0, value_parser = in_range(1e-6, 1e6))]
         brightness: f64,
         /// Contrast edit (Eq. 16).
-        #[arg(long, default_value_t = 1.0, value_parser = number_in(0.0, 1e3))]
+        #[arg(long, default_value_t = 1.0, value_parser = in_range(0.0, 1e3))]
         contrast: f64,
         /// Angular edit: blur (> 1) or sharpen (< 1) the highlight, S or SX,SY (stretch).
         #[arg(long, default_value = "1")]
@@ -180,10 +162,10 @@ enum Cmd {
         #[arg(long)]
         fix_geometry: Option<String>,
         /// Rotations of the geometry tried (geometry and general solvers).
-        #[arg(long, default_value_t = 4, value_parser = count_in(1, 360))]
+        #[arg(long, default_value_t = 4, value_parser = in_range::<usize>(1, 360))]
         psi: usize,
         /// Candidates returned.
-        #[arg(long, short = 'k', default_value_t = 5, value_parser = count_in(1, 1000))]
+        #[arg(long, short = 'k', default_value_t = 5, value_parser = in_range::<usize>(1, 1000))]
         k: usize,
         /// Items re-ranked with their own library data [default: geometries one per 20 (256 to 4096), materials one per 2 (64 to 2048)]
         #[arg(long)]
@@ -197,7 +179,7 @@ enum Cmd {
         /// --stop-below) and iterations per start.
         #[arg(long, default_value_t = 5)]
         starts: usize,
-        #[arg(long, default_value_t = 4, value_parser = count_in(1, 1000))]
+        #[arg(long, default_value_t = 4, value_parser = in_range::<usize>(1, 1000))]
         iterations: usize,
         /// General solver: geometries of each geometry solve that get a material solve.
         #[arg(long, default_value_t = 3)]
@@ -210,10 +192,10 @@ enum Cmd {
         joint_pool: usize,
         /// General solver: stop once a combination is within this relative error (0.01 = 1 %;
         /// 0: run every start and iteration).
-        #[arg(long, default_value_t = biscale::solve::general::STOP_BELOW, value_parser = number_in(0.0, 1.0))]
+        #[arg(long, default_value_t = biscale::solve::general::STOP_BELOW, value_parser = in_range(0.0, 1.0))]
         stop_below: f64,
         /// Weight of the colour term (Eq. 13), 0..1.
-        #[arg(long, default_value_t = 0.0, value_parser = number_in(0.0, 1.0))]
+        #[arg(long, default_value_t = 0.0, value_parser = in_range(0.0, 1.0))]
         beta: f64,
         /// Final evaluation of the K candidates.
         #[arg(long, value_enum, default_value = "exact")]
@@ -221,7 +203,7 @@ enum Cmd {
         /// Visually equivalent details: return up to N diverse combinations within --bound.
         #[arg(long)]
         veds: Option<usize>,
-        #[arg(long, default_value_t = 0.07, value_parser = number_in(1e-6, 10.0))]
+        #[arg(long, default_value_t = 0.07, value_parser = in_range(1e-6, 10.0))]
         bound: f64,
         /// Library directory; default: the cached build of --profile (built on first use).
         #[arg(long)]
@@ -247,11 +229,11 @@ enum Cmd {
         profile: String,
         #[arg(long)]
         cache_dir: Option<PathBuf>,
-        #[arg(long, default_value_t = 20, value_parser = count_in(1, 1_000_000))]
+        #[arg(long, default_value_t = 20, value_parser = in_range::<usize>(1, 1_000_000))]
         cases: usize,
         #[arg(long, default_value_t = 1)]
         seed: u64,
-        #[arg(long, default_value_t = 1, value_parser = count_in(1, 360))]
+        #[arg(long, default_value_t = 1, value_parser = in_range::<usize>(1, 360))]
         psi: usize,
         /// Items re-ranked with their own library data [default: geometries one per 20 (256 to 4096), materials one per 2 (64 to 2048)]
         #[arg(long)]
@@ -260,7 +242,7 @@ enum Cmd {
         /// by their binned columns (the pool then comes from the light-lobe rankings: X and, when the library has them, the weights refitted to the light lobes).
         #[arg(long)]
         lobes_search_only: bool,
-        #[arg(long, default_value_t = 3, value_parser = count_in(1, 1000))]
+        #[arg(long, default_value_t = 3, value_parser = in_range::<usize>(1, 1000))]
         k: usize,
         /// General solver: starts (plus two from the first start's material sharpened, lobe
         /// widths x 0.4 and x 0.25, each run only when no start before it came within
@@ -278,7 +260,7 @@ enum Cmd {
         joint_pool: usize,
         /// General solver: stop once a combination is within this relative error (0.01 = 1 %;
         /// 0: run every start and iteration).
-        #[arg(long, default_value_t = biscale::solve::general::STOP_BELOW, value_parser = number_in(0.0, 1.0))]
+        #[arg(long, default_value_t = biscale::solve::general::STOP_BELOW, value_parser = in_range(0.0, 1.0))]
         stop_below: f64,
         /// Solvers to run, comma-separated (each with its exhaustive scan) [default: all]
         #[arg(long, value_delimiter = ',')]
@@ -392,7 +374,7 @@ enum BenchCmd {
     /// Time to build the compact BVNDF and the prefiltered material, and to evaluate 490 pairs.
     Speed {
         /// Repetitions per measurement (the median is reported).
-        #[arg(long, default_value_t = 5, value_parser = count_in(1, 100_000))]
+        #[arg(long, default_value_t = 5, value_parser = in_range::<usize>(1, 100_000))]
         reps: usize,
     },
     /// Precompute time per library geometry and material, extrapolated to a whole profile.
@@ -400,7 +382,7 @@ enum BenchCmd {
         #[arg(long, default_value = "paper")]
         profile: String,
         /// Geometries timed (a quarter as many materials).
-        #[arg(long, default_value_t = 64, value_parser = count_in(1, 1_000_000))]
+        #[arg(long, default_value_t = 64, value_parser = in_range::<usize>(1, 1_000_000))]
         sample: usize,
     },
     /// The compressed search on a library of the paper's size (synthetic weights) against the
@@ -410,7 +392,7 @@ enum BenchCmd {
         #[arg(long, default_value_t = 164_431)]
         items: usize,
         /// Representatives (the default library's geometry library: 74).
-        #[arg(long, default_value_t = 74, value_parser = count_in(1, 100_000))]
+        #[arg(long, default_value_t = 74, value_parser = in_range::<usize>(1, 100_000))]
         reps: usize,
         /// Samples (7 lights × 70 views).
         #[arg(long, default_value_t = 490)]
@@ -422,9 +404,9 @@ enum BenchCmd {
     LibraryAccuracy {
         /// Library directory (built by `biscale library build`).
         dir: PathBuf,
-        #[arg(long, default_value_t = 200, value_parser = count_in(1, 1_000_000))]
+        #[arg(long, default_value_t = 200, value_parser = in_range::<usize>(1, 1_000_000))]
         geometries: usize,
-        #[arg(long, default_value_t = 10, value_parser = count_in(1, 1_000_000))]
+        #[arg(long, default_value_t = 10, value_parser = in_range::<usize>(1, 1_000_000))]
         materials: usize,
         #[arg(long, default_value_t = 1)]
         seed: u64,
@@ -436,12 +418,12 @@ enum BenchCmd {
         #[arg(long, default_value = "cnc-ball1-aluminium")]
         profile: String,
         /// Repetitions per measurement (the median is reported).
-        #[arg(long, default_value_t = 3, value_parser = count_in(1, 100_000))]
+        #[arg(long, default_value_t = 3, value_parser = in_range::<usize>(1, 100_000))]
         reps: usize,
     },
     /// Error of the fast evaluator against the exact one over random geometries and materials.
     Accuracy {
-        #[arg(long, default_value_t = 24, value_parser = count_in(1, 1_000_000))]
+        #[arg(long, default_value_t = 24, value_parser = in_range::<usize>(1, 1_000_000))]
         cases: usize,
         #[arg(long, default_value_t = 1)]
         seed: u64,
