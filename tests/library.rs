@@ -65,7 +65,10 @@ fn same_profile_and_seed_give_identical_files_and_shards_equal_one_process() {
     for i in [2, 0, 1] {
         build_shard(&p, &base, &b, Shard { index: i, count: 3 }, false, &QUIET).unwrap();
     }
-    merge_shards(&b, &QUIET, false).unwrap();
+    let mb = merge_shards(&b, &QUIET, false).unwrap();
+    // The shards' times reach the merged manifest through their records beside the chunks.
+    assert_eq!(mb.build.shards_merged, 3);
+    assert!(mb.build.geometry_seconds > 0.0 && mb.build.material_seconds > 0.0);
     let (fa, fb) = (data_files(&a), data_files(&b));
     assert_eq!(fa.len(), fb.len());
     for ((na, ba), (nb, bb)) in fa.iter().zip(&fb) {
@@ -254,6 +257,13 @@ fn corrupted_truncated_and_foreign_files_are_named_errors_and_opening_is_lazy() 
         .unwrap()
         .to_string();
     assert!(e.contains("gamma.bsa") && e.contains("checksum"), "{e}");
+    // A merge cannot redo it (its chunks went when it was joined) and says to rebuild, not to
+    // build missing shards.
+    let e = merge_shards(&d, &QUIET, false).err().unwrap().to_string();
+    assert!(
+        e.contains("gamma.bsa") && e.contains("--force") && !e.contains("missing shards"),
+        "{e}"
+    );
     // Truncate it.
     std::fs::write(&g, &good[..n - 1000]).unwrap();
     let e = Library::open(&d)

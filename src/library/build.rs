@@ -21,7 +21,9 @@
 use super::items::{
     average_colour, colour_shifts, geometry_items, material_items, GeometryItem, MaterialItem,
 };
-use super::manifest::{ArrayEntry, CompressionReport, Manifest, StageTimes, MANIFEST_VERSION};
+use super::manifest::{
+    ArrayEntry, CompressionReport, Manifest, ShardTimes, StageTimes, MANIFEST_VERSION,
+};
 use super::profile::LibraryProfile;
 use super::progress::{Bar, Progress, Stages};
 use crate::error::{Error, Result};
@@ -145,7 +147,8 @@ pub struct BuildReport {
     pub joined: Vec<(&'static str, String)>,
 }
 
-/// Build this shard's chunks in `dir` (resuming: valid chunks are kept).
+/// Build this shard's chunks in `dir` (resuming: valid chunks are kept). A shard of several
+/// adds its times to `chunks/shard-I-of-N.json` ([`ShardTimes`]) for the merge's manifest.
 ///
 /// Relative `texture_dirs` / `merl_dirs` of `prof` are resolved against `base` (the profile
 /// file's directory) before `profile.toml` is written, so the stored profile holds absolute
@@ -161,7 +164,22 @@ pub fn build_shard(
     force: bool,
     progress: &Progress,
 ) -> Result<BuildReport> {
-    build(prof, base, dir, shard, force, progress, false)
+    let rep = build(prof, base, dir, shard, force, progress, false)?;
+    if shard.count > 1 && !rep.already_built {
+        ShardTimes::record(
+            dir,
+            shard.index,
+            shard.count,
+            &ShardTimes {
+                geometry_seconds: rep.geometry_seconds,
+                material_seconds: rep.material_seconds,
+                geometries_built: rep.geometries_built,
+                materials_built: rep.materials_built,
+                runs: 1,
+            },
+        )?;
+    }
+    Ok(rep)
 }
 
 /// Build every item in this process straight into the joined arrays (`geometry/gamma.bsa`,
@@ -293,6 +311,14 @@ fn build(
     )?;
     rep.materials_built = n;
     rep.material_seconds = secs;
+    if stream {
+        // Chunks of earlier shards were copied in (and removed); their time records go with
+        // them into this build's times.
+        let (shards, _, _) = ShardTimes::collect(dir);
+        rep.geometry_seconds += shards.geometry_seconds;
+        rep.material_seconds += shards.material_seconds;
+        ShardTimes::remove_all(dir);
+    }
     Ok(rep)
 }
 
@@ -1101,6 +1127,21 @@ pub fn merge(
             None => None,
             Some(e) => match p.open_joined(dir) {
                 Ok(f) => Some((f.header.checksum.clone(), true)),
+                // The joined array is there but damaged, and an earlier merge removed its
+                // chunks: no shard is missing, the part must be built again.
+                Err(je) if dir.join(p.joined).exists() => {
+                    return Err(Error::new(
+                        je.context,
+                        format!(
+                            "{}; its chunks were removed when it was joined, so it cannot be \
+                             merged again: rebuild the library with `biscale library build \
+                             --profile {} --out {} --force`",
+                            je.message.trim_end_matches("; rebuild the library"),
+                            prof.name,
+                            dir.display()
+                        ),
+                    ))
+                }
                 Err(_) => return Err(e),
             },
         });

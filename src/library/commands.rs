@@ -156,14 +156,30 @@ fn summary(dir: &Path, m: &Manifest) -> String {
             c.total_rel_error
         ));
     }
+    let items = if b.shards_merged > 0 {
+        format!(
+            "geometries {:.1} s, materials {:.1} s (the sum of {} shard records; the shards ran elsewhere)",
+            b.geometry_seconds, b.material_seconds, b.shards_merged
+        )
+    } else if b.shards_in_process == 0 && b.geometry_seconds == 0.0 && b.material_seconds == 0.0 {
+        "geometries and materials not recorded (shards built without time records)".to_string()
+    } else {
+        format!(
+            "geometries {:.1} s, materials {:.1} s",
+            b.geometry_seconds, b.material_seconds
+        )
+    };
+    let total = if b.shards_in_process == 0 {
+        "merge total"
+    } else {
+        "total"
+    };
     s.push_str(&format!(
         "colours: {} per distinct material ({} effective materials)\n\
-         build: geometries {:.1} s, materials {:.1} s, join {:.1} s, colours {:.1} s, compression {:.1} s, \
-         light-lobe weights {:.1} s; total {:.1} s on {} threads; peak memory {:.0} MiB\n",
+         build: {items}, join {:.1} s, colours {:.1} s, compression {:.1} s, \
+         light-lobe weights {:.1} s; {total} {:.1} s on {} threads; peak memory {:.0} MiB\n",
         m.colours_per_material,
         m.materials * m.colours_per_material,
-        b.geometry_seconds,
-        b.material_seconds,
         b.assemble,
         b.colours,
         b.compress,

@@ -72,6 +72,97 @@ pub struct StageTimes {
     /// Shards that built chunks in this process (1 for a one-process build; 0 when merged
     /// separately).
     pub shards_in_process: usize,
+    /// Shard records ([`ShardTimes`]) a separate merge found and summed into
+    /// `geometry_seconds` / `material_seconds` (0 for a one-process build).
+    #[serde(default)]
+    pub shards_merged: usize,
+}
+
+/// What one shard of a sharded build spent, kept beside its chunks as
+/// `chunks/shard-I-of-N.json` so that `library merge`, often run in another process or on
+/// another node, can report the build's item times. A resumed shard adds to its record.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ShardTimes {
+    pub geometry_seconds: f64,
+    pub material_seconds: f64,
+    pub geometries_built: usize,
+    pub materials_built: usize,
+    /// Runs of this shard that built or reused chunks (more than 1 after a resume).
+    pub runs: usize,
+}
+
+impl ShardTimes {
+    fn path(dir: &Path, index: usize, count: usize) -> std::path::PathBuf {
+        dir.join("chunks")
+            .join(format!("shard-{index}-of-{count}.json"))
+    }
+
+    /// Add one run's times to shard `index` of `count`'s record in `dir` (written atomically).
+    /// An unreadable earlier record is replaced: the times are a report, not library data.
+    pub fn record(dir: &Path, index: usize, count: usize, run: &ShardTimes) -> Result<()> {
+        let p = Self::path(dir, index, count);
+        let mut t: ShardTimes = std::fs::read_to_string(&p)
+            .ok()
+            .and_then(|s| serde_json::from_str(&s).ok())
+            .unwrap_or_default();
+        t.geometry_seconds += run.geometry_seconds;
+        t.material_seconds += run.material_seconds;
+        t.geometries_built += run.geometries_built;
+        t.materials_built += run.materials_built;
+        t.runs += 1;
+        let text = serde_json::to_string_pretty(&t)
+            .map_err(|e| Error::new(p.display().to_string(), format!("cannot encode: {e}")))?;
+        crate::atomic_write::write_bytes(&p, text.as_bytes())
+    }
+
+    /// The shard records in `dir/chunks`, sorted.
+    fn paths(dir: &Path) -> Vec<std::path::PathBuf> {
+        let Ok(rd) = std::fs::read_dir(dir.join("chunks")) else {
+            return Vec::new();
+        };
+        let mut paths: Vec<_> = rd
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| {
+                p.file_name()
+                    .and_then(|n| n.to_str())
+                    .is_some_and(|n| n.starts_with("shard-") && n.ends_with(".json"))
+            })
+            .collect();
+        paths.sort();
+        paths
+    }
+
+    /// Remove every shard record of `dir` (once their times are taken into a build's).
+    pub fn remove_all(dir: &Path) {
+        for p in Self::paths(dir) {
+            let _ = std::fs::remove_file(p);
+        }
+    }
+
+    /// The sum of every shard record in `dir/chunks` and how many there were. Records that do
+    /// not parse are skipped and named in the returned list.
+    pub fn collect(dir: &Path) -> (ShardTimes, usize, Vec<String>) {
+        let mut sum = ShardTimes::default();
+        let (mut n, mut bad) = (0, Vec::new());
+        for p in Self::paths(dir) {
+            match std::fs::read_to_string(&p)
+                .ok()
+                .and_then(|s| serde_json::from_str::<ShardTimes>(&s).ok())
+            {
+                Some(t) => {
+                    sum.geometry_seconds += t.geometry_seconds;
+                    sum.material_seconds += t.material_seconds;
+                    sum.geometries_built += t.geometries_built;
+                    sum.materials_built += t.materials_built;
+                    sum.runs += t.runs;
+                    n += 1;
+                }
+                None => bad.push(p.display().to_string()),
+            }
+        }
+        (sum, n, bad)
+    }
 }
 
 impl Manifest {

@@ -38,7 +38,7 @@ use crate::gamma::GammaLayout;
 use crate::store::{ArrayFile, Expect};
 use build::{merge, Shard};
 use items::{GeometryItem, MaterialItem};
-use manifest::{Manifest, StageTimes};
+use manifest::{Manifest, ShardTimes, StageTimes};
 use profile::LibraryProfile;
 use progress::Progress;
 use std::collections::BTreeMap;
@@ -85,10 +85,29 @@ pub fn build_all(
 pub fn merge_shards(dir: &Path, progress: &Progress, keep_chunks: bool) -> Result<Manifest> {
     let t = Instant::now();
     let (_, base) = profile_of(dir)?;
-    let times = StageTimes {
+    // The shards' own times, recorded beside their chunks (which the merge removes).
+    let (shards, n, bad) = ShardTimes::collect(dir);
+    for b in bad {
+        progress.note(&format!(
+            "merge: {b} is not a shard time record; its times are left out"
+        ));
+    }
+    let mut times = StageTimes {
+        geometry_seconds: shards.geometry_seconds,
+        material_seconds: shards.material_seconds,
         threads: rayon::current_num_threads(),
+        shards_merged: n,
         ..Default::default()
     };
+    // Merging a finished library again (to rewrite a damaged item list, say) keeps the item
+    // times its manifest recorded; the total is then this merge's.
+    if n == 0 {
+        if let Ok(old) = Manifest::read(dir) {
+            times.geometry_seconds = old.build.geometry_seconds;
+            times.material_seconds = old.build.material_seconds;
+            times.shards_merged = old.build.shards_merged;
+        }
+    }
     let mut m = merge(dir, &base, progress, times, keep_chunks, &[])?;
     m.build.total_seconds = t.elapsed().as_secs_f64();
     m.write(dir)?;
@@ -337,7 +356,12 @@ impl Library {
             if crate::store::checksum(&bytes) != e.checksum {
                 return Err(Error::new(
                     p.display().to_string(),
-                    "checksum differs from the manifest: corrupted; rebuild",
+                    format!(
+                        "checksum differs from the manifest: the file was changed; \
+                         `biscale library merge {}` writes the item lists again from its \
+                         profile.toml",
+                        self.dir.display()
+                    ),
                 ));
             }
         }
