@@ -22,12 +22,18 @@ A material is one or more lobes joined by '+', e.g. 'ggx:alpha=0.1+lambert:albed
   ct:m=m[,f0=F][,ks=K]          Cook-Torrance: Beckmann D, Schlick F, V-cavity G
   ward:alpha=a[,ks=K]           isotropic Ward
   blinn:n=N[,ks=K]              Blinn-Phong, f = K (N+8)/(8 pi) (n.h)^N
-  PATH.binary                   a MERL measured BRDF
+  PATH.binary                   a MERL measured BRDF (a '+' in a path is kept when the path
+                                has a '/', e.g. ./gold+paint.binary)
 Defaults: f0=1, ks=1. Any lobe may carry rgb=R:G:B, the material's colour (scaled to mean 1).
 Roughness a, m in (0, 10]; N in [0, 1e7]; f0 in [0, 1]; ks >= 0.";
 
-/// Split at '+' signs that start a new term (not the '+' of an exponent such as `1e+5`).
+/// Split at '+' signs that start a new term: not the '+' of an exponent such as `1e+5`, nor a
+/// '+' inside a file path (a term with a '/' or '\\' that does not yet end in `.binary`). A spec
+/// that names an existing file as a whole is that one file, '+' signs and all.
 fn split_terms(spec: &str) -> Vec<&str> {
+    if spec.contains('+') && Path::new(spec.trim()).is_file() {
+        return vec![spec];
+    }
     let b = spec.as_bytes();
     let mut out = Vec::new();
     let mut start = 0;
@@ -35,7 +41,10 @@ fn split_terms(spec: &str) -> Vec<&str> {
         if b[i] == b'+' {
             let prev_is_exp =
                 i >= 2 && (b[i - 1] == b'e' || b[i - 1] == b'E') && b[i - 2].is_ascii_digit();
-            if !prev_is_exp {
+            let so_far = spec[start..i].trim();
+            let inside_path =
+                (so_far.contains('/') || so_far.contains('\\')) && !so_far.ends_with(".binary");
+            if !prev_is_exp && !inside_path {
                 out.push(&spec[start..i]);
                 start = i + 1;
             }
@@ -395,6 +404,30 @@ mod tests {
         parse_material(&s).unwrap();
         assert_eq!(round_sig4(0.000123456), 0.0001235);
         assert_eq!(round_sig4(0.0), 0.0);
+    }
+
+    #[test]
+    fn a_plus_in_a_merl_path_stays_in_the_path() {
+        assert_eq!(
+            split_terms("dir/gold+paint.binary"),
+            ["dir/gold+paint.binary"]
+        );
+        assert_eq!(
+            split_terms("dir/a.binary+lambert:albedo=0.2"),
+            ["dir/a.binary", "lambert:albedo=0.2"]
+        );
+        assert_eq!(
+            split_terms("ggx:alpha=1e+1+dir/a+b.binary+lambert:albedo=0.2"),
+            ["ggx:alpha=1e+1", "dir/a+b.binary", "lambert:albedo=0.2"]
+        );
+        // A MERL file whose name has a '+', alone and in a sum.
+        let dir = crate::testdir::TestDir::new("merl-plus");
+        let p = dir.join("gold+paint.binary");
+        MerlBrdf::write_synthetic(&p, |_, _, _, _| 1500.0 / std::f64::consts::PI).unwrap();
+        let path = p.display().to_string();
+        assert_eq!(parse_material(&path).unwrap().lobes.len(), 1);
+        let sum = format!("{path}+lambert:albedo=0.2");
+        assert_eq!(parse_material(&sum).unwrap().lobes.len(), 2);
     }
 
     #[test]
