@@ -5,7 +5,7 @@ fn main() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(3);
-    match biscale::bench::speed(reps) {
+    match biscale::bench::speed(reps, &biscale::library::progress::Progress { quiet: true }) {
         Ok(table) => print!("{table}"),
         Err(e) => {
             eprintln!("bench: {e}");

@@ -7,6 +7,7 @@ use crate::exact::ExactEvaluator;
 use crate::frame::DirPair;
 use crate::generators::parse_generator;
 use crate::heightfield::Heightfield;
+use crate::library::progress::Progress;
 use crate::material::parse_material;
 use crate::pairs::default_pairs;
 use crate::prefilter::{PrefilterConfig, Prefiltered};
@@ -67,8 +68,9 @@ pub fn relative_rms(got: &[f64], want: &[f64]) -> f64 {
 
 /// Speed table: compact BVNDF build of 128² geometries, prefiltered material build, and one
 /// evaluation of the 490 default pairs by each method.
-pub fn speed(reps: usize) -> Result<String> {
+pub fn speed(reps: usize, progress: &Progress) -> Result<String> {
     let threads = rayon::current_num_threads();
+    let bar = progress.bar(9, "bench speed: 5 surfaces, then 4 materials");
     let dirs = default_dirs();
     let mut out = format!(
         "Forward model speed ({threads} threads; median of {reps}; 490 pairs = 7 lights × 70 views)\n\n\
@@ -101,6 +103,7 @@ pub fn speed(reps: usize) -> Result<String> {
             tfw * 1e3,
             te
         ));
+        bar.inc(1);
     }
     out.push_str("\n| material | prefiltered F build | F size |\n|---|---|---|\n");
     for spec in [
@@ -118,7 +121,9 @@ pub fn speed(reps: usize) -> Result<String> {
             tp * 1e3,
             p.bytes() as f64 / 1e6
         ));
+        bar.inc(1);
     }
+    bar.finish();
     Ok(out)
 }
 
@@ -195,7 +200,8 @@ fn random_material(r: &mut Rng) -> String {
 /// Accuracy table: relative RMS error of the fast evaluator against the exact one (s = 2) at the
 /// 490 default pairs, for `cases` random (geometry, material) pairs drawn with `seed`, the fast
 /// method's compact BVNDF built with `cfg`.
-pub fn accuracy(cases: usize, seed: u64, cfg: &BvndfConfig) -> Result<String> {
+pub fn accuracy(cases: usize, seed: u64, cfg: &BvndfConfig, progress: &Progress) -> Result<String> {
+    let bar = progress.bar(cases as u64, "bench accuracy: cases (exact and fast)");
     let pairs = default_pairs(70);
     let dirs: Vec<DirPair> = pairs.iter().map(|p| p.dirs()).collect();
     let mut errs85 = Vec::new();
@@ -227,7 +233,9 @@ pub fn accuracy(cases: usize, seed: u64, cfg: &BvndfConfig) -> Result<String> {
             100.0 * e,
             100.0 * e85
         ));
+        bar.inc(1);
     }
+    bar.finish();
     let summary = |name: &str, errs: &[f64]| {
         let mut sorted = errs.to_vec();
         sorted.sort_by(f64::total_cmp);

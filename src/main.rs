@@ -2,6 +2,7 @@
 
 use biscale::bvndf::BvndfConfig;
 use biscale::forward::{ForwardJob, Method};
+use biscale::library::progress::Progress;
 use biscale::material::MATERIAL_GRAMMAR;
 use clap::{Parser, Subcommand, ValueEnum};
 use std::path::PathBuf;
@@ -293,6 +294,9 @@ enum Cmd {
     Bench {
         #[command(subcommand)]
         what: BenchCmd,
+        /// No progress on standard error (the tables still go to standard output).
+        #[arg(long, short = 'q', global = true)]
+        quiet: bool,
     },
 }
 
@@ -687,8 +691,10 @@ fn main() -> ExitCode {
                 biscale::library::commands::verify(&dir).map(|t| print!("{t}"))
             }
         },
-        Cmd::Bench { what } => match what {
-            BenchCmd::Speed { reps } => biscale::bench::speed(reps.max(1)).map(|t| print!("{t}")),
+        Cmd::Bench { what, quiet } => match what {
+            BenchCmd::Speed { reps } => {
+                biscale::bench::speed(reps.max(1), &Progress { quiet }).map(|t| print!("{t}"))
+            }
             BenchCmd::Scan {
                 items,
                 reps,
@@ -696,15 +702,22 @@ fn main() -> ExitCode {
                 seed,
             } => biscale::solve::bench::scan(items, reps, samples, seed).map(|t| print!("{t}")),
             BenchCmd::LibrarySpeed { profile, sample } => {
-                biscale::library::bench::speed(&profile, sample.max(1)).map(|t| print!("{t}"))
+                biscale::library::bench::speed(&profile, sample.max(1), &Progress { quiet })
+                    .map(|t| print!("{t}"))
             }
             BenchCmd::LibraryAccuracy {
                 dir,
                 geometries,
                 materials,
                 seed,
-            } => biscale::library::bench::accuracy(&dir, geometries.max(1), materials.max(1), seed)
-                .map(|t| print!("{t}")),
+            } => biscale::library::bench::accuracy(
+                &dir,
+                geometries.max(1),
+                materials.max(1),
+                seed,
+                &Progress { quiet },
+            )
+            .map(|t| print!("{t}")),
             BenchCmd::Fab { profile, reps } => biscale::fab::profile::load_profile(
                 &profile,
                 &biscale::fab::profile::FabPaths::default_paths(),
@@ -713,7 +726,8 @@ fn main() -> ExitCode {
             .map(|t| print!("{t}")),
             BenchCmd::Accuracy { cases, seed, build } => {
                 let cfg = build.config();
-                biscale::bench::accuracy(cases.max(1), seed, &cfg).map(|t| print!("{t}"))
+                biscale::bench::accuracy(cases.max(1), seed, &cfg, &Progress { quiet })
+                    .map(|t| print!("{t}"))
             }
         },
     };

@@ -5,6 +5,7 @@
 use super::build::{gamma_layout, geometry_data, prefilter_config};
 use super::items::{geometry_items, material_items};
 use super::profile::LibraryProfile;
+use super::progress::Progress;
 use super::Library;
 use crate::error::{Error, Result};
 use crate::exact::ExactEvaluator;
@@ -29,7 +30,7 @@ fn quantiles(mut v: Vec<f64>) -> (f64, f64, f64) {
 
 /// Time `sample` geometries and `sample / 4` materials of `profile`, spread over its families,
 /// and extrapolate the whole profile's precompute on this machine.
-pub fn speed(profile: &str, sample: usize) -> Result<String> {
+pub fn speed(profile: &str, sample: usize, progress: &Progress) -> Result<String> {
     let (prof, path) = LibraryProfile::load(profile)?;
     let base = path.parent().map(Path::to_path_buf).unwrap_or_default();
     let geos = geometry_items(&prof, &base)?;
@@ -41,10 +42,19 @@ pub fn speed(profile: &str, sample: usize) -> Result<String> {
     // Items in parallel, as `library build` runs them (one item's serial parts, generating the
     // heightfield and clustering its normals, would otherwise leave a core idle).
     let t = Instant::now();
+    let bar = progress.bar(
+        pick(geos.len(), sample).len() as u64,
+        "bench library-speed: geometries",
+    );
     pick(geos.len(), sample)
         .par_iter()
-        .map(|&i| geometry_data(&geos[i], &layout, &prof).map(|_| ()))
+        .map(|&i| {
+            let r = geometry_data(&geos[i], &layout, &prof).map(|_| ());
+            bar.inc(1);
+            r
+        })
         .collect::<Result<Vec<()>>>()?;
+    bar.finish();
     let ng = pick(geos.len(), sample).len().max(1);
     let tg = t.elapsed().as_secs_f64() / ng as f64;
     let pcfg = prefilter_config(&prof);
@@ -105,7 +115,13 @@ fn rel(got: &[f64], want: &[f64]) -> f64 {
 /// (d) the geometry's own light lobes ([`crate::lightlobes`]) with the material's stored table,
 /// (e) the representatives' light lobes combined with the CX weights (what the geometry search
 /// computes), and (e) against (d): the search index's own error.
-pub fn accuracy(dir: &Path, geometries: usize, materials_per: usize, seed: u64) -> Result<String> {
+pub fn accuracy(
+    dir: &Path,
+    geometries: usize,
+    materials_per: usize,
+    seed: u64,
+    progress: &Progress,
+) -> Result<String> {
     let lib = Library::open(dir)?;
     let items = lib.geometry_items()?;
     let mats = lib.material_items()?;
@@ -160,6 +176,7 @@ pub fn accuracy(dir: &Path, geometries: usize, materials_per: usize, seed: u64) 
         .collect();
     let mut picks = mat_index.chunks(materials_per.max(1));
     let t = Instant::now();
+    let bar = progress.bar(geometries as u64, "bench library-accuracy: geometries");
     for _ in 0..geometries {
         let j = rng.below(items.len() as u64) as usize;
         let hf = parse_generator(&items[j].spec)?.build()?;
@@ -210,7 +227,9 @@ pub fn accuracy(dir: &Path, geometries: usize, materials_per: usize, seed: u64) 
                 w_lob.push(rel(&lob, ex));
             }
         }
+        bar.inc(1);
     }
+    bar.finish();
     let n = e_bin.len();
     let row = |name: &str, v: Vec<f64>| {
         let within = v.iter().filter(|&&e| e <= 0.05).count() as f64 / v.len().max(1) as f64;
