@@ -43,9 +43,18 @@ fn key_of_line(line: &str) -> Option<String> {
 /// Serde's type words rewritten for a user ("f64" → "a number").
 fn plain(msg: &str) -> String {
     msg.replace("expected f64", "expected a number")
-        .replace("expected u32", "expected a whole number >= 0")
-        .replace("expected u64", "expected a whole number >= 0")
-        .replace("expected usize", "expected a whole number >= 0")
+        .replace(
+            "expected u32",
+            "expected a whole number from 0 to 4294967295",
+        )
+        .replace(
+            "expected u64",
+            "expected a whole number from 0 to 18446744073709551615",
+        )
+        .replace(
+            "expected usize",
+            "expected a whole number from 0 to 18446744073709551615",
+        )
 }
 
 fn map_error(path: &Path, src: &str, msg: &str, span: Option<std::ops::Range<usize>>) -> Error {

@@ -267,8 +267,34 @@ impl Scene {
                 ));
             }
         }
-        if self.candidates == 0 || self.psi == 0 {
-            return Err(Error::new("candidates / psi", "expected integers >= 1"));
+        // Whole-number keys: each in a range a run can use (a huge `candidates` would allocate
+        // its pool before the library caps it; `psi` is rotations of a full turn).
+        for (k, v, lo, hi) in [
+            ("candidates", self.candidates, 1, 100_000),
+            ("psi", self.psi, 1, 360),
+            ("details", self.details, 0, 1000),
+            ("refine", self.refine, 0, 1000),
+            (
+                "refine_evaluations",
+                self.refine_evaluations as usize,
+                0,
+                100_000,
+            ),
+        ] {
+            if !(lo..=hi).contains(&v) {
+                return Err(Error::new(
+                    k,
+                    format!("expected a whole number from {lo} to {hi}, got {v}"),
+                ));
+            }
+        }
+        if let Some(b) = self.triangle_budget {
+            if b < 12 {
+                return Err(Error::new(
+                    "triangle_budget",
+                    format!("expected at least 12 (the fewest triangles of a closed box), got {b}"),
+                ));
+            }
         }
         if let Some(e) = self.decimate_max_error_mm {
             if !(e.is_finite() && e > 0.0) {
@@ -333,5 +359,23 @@ mod tests {
         .unwrap()
         .to_string();
         assert!(e.contains("s.toml") && e.contains("details"), "{e}");
+        // Whole numbers out of range name their key (a huge `candidates` used to abort on an
+        // allocation of terabytes).
+        for (from, to, key) in [
+            ("candidates = 40", "candidates = 100000000000", "candidates"),
+            ("psi = 4", "psi = 0", "psi"),
+            ("psi = 4", "psi = 100000", "psi"),
+        ] {
+            let e = Scene::parse(&DEFAULT_SCENE.replace(from, to), "s.toml")
+                .err()
+                .unwrap()
+                .to_string();
+            assert!(e.contains("s.toml") && e.contains(key), "{to}: {e}");
+        }
+        let e = Scene::parse(&format!("{DEFAULT_SCENE}\ntriangle_budget = 1\n"), "s.toml")
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("triangle_budget"), "{e}");
     }
 }
