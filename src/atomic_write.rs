@@ -50,17 +50,40 @@ fn process_tag() -> &'static str {
 
 /// A fresh temporary name next to `path`: `.NAME.tmp-HOST-PID-NONCE-COUNT`.
 /// Check, before any work, that a directory can hold output: `dir` is a directory, or does not
-/// exist and its nearest existing ancestor is one (it is made when the output is written).
-/// `what` names the option in the error.
+/// exist and its nearest existing ancestor is one (it is made when the output is written), and
+/// that directory lets us create an entry (a probe directory, removed at once). `what` names
+/// the option in the error.
 pub fn check_output_dir(dir: &Path, what: &str) -> Result<()> {
+    let writable = |d: &Path| -> Result<()> {
+        let probe = d.join(format!(".biscale-probe-{}", std::process::id()));
+        match std::fs::create_dir(&probe) {
+            Ok(()) => {
+                let _ = std::fs::remove_dir(&probe);
+                Ok(())
+            }
+            Err(e) => Err(Error::new(
+                what,
+                format!(
+                    "cannot write in {} ({e}), so {} cannot be written",
+                    if d.as_os_str().is_empty() {
+                        Path::new(".")
+                    } else {
+                        d
+                    }
+                    .display(),
+                    dir.display()
+                ),
+            )),
+        }
+    };
     let mut p = dir;
     loop {
         if p.as_os_str().is_empty() {
-            return Ok(()); // the working directory
+            return writable(p); // the working directory
         }
         if p.exists() {
             return if p.is_dir() {
-                Ok(())
+                writable(p)
             } else {
                 Err(Error::new(
                     what,
@@ -205,6 +228,19 @@ mod tests {
             .to_string();
         assert!(e.contains("--plot"), "{e}");
         assert!(check_output_dir(Path::new(""), "--out").is_ok());
+        // A directory that takes no new entry is found before any work (the design used to
+        // fail only when it wrote its outputs).
+        if Path::new("/proc/self").exists() {
+            let e = check_output_dir(Path::new("/proc/biscale-out"), "--outputs")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("--outputs") && e.contains("/proc"), "{e}");
+        }
+        assert_eq!(
+            std::fs::read_dir(&*d).unwrap().count(),
+            1,
+            "the probes are removed"
+        );
     }
 
     #[test]
