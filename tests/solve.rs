@@ -245,15 +245,23 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
         "design-budget",
         &dir,
         "name = \"t2\"\ntarget = \"ward:alpha=0.2\"\nfixed_material = \"ggx:alpha=0.2,f0=0.9\"\n\
-         decimate_max_error_mm = 0.01\ntriangle_budget = 3\n",
+         decimate_max_error_mm = 0.01\ntriangle_budget = 12\n",
     );
     biscale::design::run(&job_b).unwrap();
     let log = std::fs::read_to_string(out_b.join("t2/summary.json")).unwrap();
     assert!(
-        log.contains("no mesh of this tile fits triangle_budget = 3")
+        log.contains("no mesh of this tile fits triangle_budget = 12")
             && !log.contains("the budget was kept"),
         "{log}"
     );
+    let sb: serde_json::Value = serde_json::from_str(&log).unwrap();
+    assert_eq!(sb["details"][0]["budget_met"], serde_json::json!(false), "{log}");
+    // The tile made is never larger than the one asked for.
+    let made = sb["details"][0]["tile_made_mm"].as_array().unwrap();
+    let asked = sb["scene"]["tile_mm"].as_array().unwrap();
+    for (m, a) in made.iter().zip(asked) {
+        assert!(m.as_f64().unwrap() <= a.as_f64().unwrap(), "{made:?} > {asked:?}");
+    }
     let d = &details[0];
     for key in [
         "patch_mm",

@@ -72,9 +72,15 @@ pub struct DetailSummary {
     pub score: f64,
     /// Continuous refinement (amplitude scale, rotation), when asked for.
     pub refinement: Option<refine::Refined>,
+    /// The tile actually made, `[x, y]` mm: `tile_mm` rounded down to whole samples of the
+    /// surface (exported details only).
+    pub tile_made_mm: Option<[f64; 2]>,
     pub triangles: Option<usize>,
     pub triangles_full: Option<usize>,
     pub mesh_height_error_mm: Option<f64>,
+    /// Whether the mesh met every decimation limit asked for (`triangle_budget`, and with it
+    /// `decimate_max_error_mm`).
+    pub budget_met: Option<bool>,
     /// The caption of `detail-N-slices.png` (which curve is which, the axes), for the report.
     #[serde(skip)]
     pub slices_caption: Option<String>,
@@ -445,8 +451,13 @@ pub fn run(job: &DesignJob) -> Result<String> {
         let mut details = Vec::new();
         let n_export = scene.details.min(ranked.len());
         if n_export == 0 {
+            let why = if scene.details == 0 {
+                "the scene asks for details = 0"
+            } else {
+                "no candidate is feasible"
+            };
             note(
-                "no detail exported (details = 0 or none feasible): no mesh built".into(),
+                format!("no detail exported ({why}): no mesh built"),
                 &mut log,
             );
         }
@@ -475,7 +486,10 @@ pub fn run(job: &DesignJob) -> Result<String> {
                 )?;
                 note(
                     format!(
-                        "{name}: {} triangles ({} before decimation, height error {:.4} mm), built and checked in {:.2} s",
+                        "{name}: tile made {:.3} × {:.3} mm (whole samples of {:.4} mm), {} triangles ({} before decimation, height error {:.4} mm), built and checked in {:.2} s",
+                        ex.tile_x_mm,
+                        ex.tile_y_mm,
+                        ex.sample_mm,
                         ex.triangles,
                         ex.triangles_full,
                         ex.max_height_error_mm,
@@ -547,9 +561,11 @@ pub fn run(job: &DesignJob) -> Result<String> {
                 appearance_error_made: *e_m,
                 score: *score,
                 refinement: refined.get(&rank).cloned(),
+                tile_made_mm: export.as_ref().map(|e| [e.tile_x_mm, e.tile_y_mm]),
                 triangles: export.as_ref().map(|e| e.triangles),
                 triangles_full: export.as_ref().map(|e| e.triangles_full),
                 mesh_height_error_mm: export.as_ref().map(|e| e.max_height_error_mm),
+                budget_met: export.as_ref().map(|e| e.budget_met),
                 slices_caption,
             });
         }

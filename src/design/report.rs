@@ -123,11 +123,14 @@ pub fn write_markdown(dir: &Path, s: &Summary) -> Result<()> {
             "\n## {n}\n\nTarget (left) and this detail (right), rendered as large-scale BRDFs on spheres:\n\n![{n} spheres]({n}-spheres.png)\n\n\
              One period of the heightfield: ![{n} heightfield]({n}-heightfield.png)\n\n\
              {}: ![{n} slices]({n}-slices.png)\n\n\
-             Mount the tile rotated by {:.0}° about its normal relative to the design frame. Files: `{}`, `{}` (scale: `{}`).",
+             Tile made: {} (whole samples of the surface). Mount the tile rotated by {:.0}° about its normal relative to the design frame. Files: `{}`, `{}` (scale: `{}`).",
             d.slices_caption
                 .as_deref()
                 .unwrap_or("In-plane BRDF slices")
                 .trim_end_matches('.'),
+            d.tile_made_mm
+                .map(|[x, y]| format!("{x:.3} × {y:.3} mm"))
+                .unwrap_or_else(|| "–".into()),
             d.rotation_deg,
             d.stl.clone().unwrap_or_default(),
             d.heightmap_png.clone().unwrap_or_default(),

@@ -48,7 +48,23 @@ impl TileGrid {
                     format!("must be a positive number of mm, got {t}"),
                 ));
             }
-            let k = (t / cell).round().max(1.0);
+            // Whole samples, rounded down (by a hair's tolerance, so that 50 mm of 0.5 mm
+            // samples is 100 of them): the part made is never larger than asked for, so a
+            // tile that fits the machine's travel still fits.
+            let k = (t / cell * (1.0 + 1e-9)).floor();
+            if k < 1.0 {
+                return Err(Error::new(
+                    key,
+                    format!(
+                        "{} mm is less than one sample of the surface ({} mm: the patch of {} mm \
+                         over {} samples); make the tile larger",
+                        crate::error::show_num(t),
+                        crate::error::show_num(cell),
+                        crate::error::show_num(patch_mm),
+                        hf.width()
+                    ),
+                ));
+            }
             if k > 200_000.0 {
                 return Err(Error::new(
                     key,
