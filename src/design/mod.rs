@@ -660,7 +660,44 @@ fn install(tmp: &Path, out: &Path) -> Result<()> {
         return Err(Error::io(out, "move the finished output into place", e));
     }
     if had_old {
-        let _ = std::fs::remove_dir_all(&old);
+        // The previous output may have been a directory or (with --force) a plain file.
+        let _ = if old.is_dir() {
+            std::fs::remove_dir_all(&old)
+        } else {
+            std::fs::remove_file(&old)
+        };
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn install_replaces_an_old_output_directory_or_file_and_leaves_no_backup() {
+        let d = crate::testdir::TestDir::new("design-install");
+        for old_is_file in [false, true] {
+            let (tmp, out) = (d.join(".scene.partial-1"), d.join("scene"));
+            std::fs::create_dir_all(&tmp).unwrap();
+            std::fs::write(tmp.join("report.md"), "new").unwrap();
+            if old_is_file {
+                std::fs::write(&out, "an old file").unwrap();
+            } else {
+                std::fs::create_dir_all(&out).unwrap();
+                std::fs::write(out.join("report.md"), "old").unwrap();
+            }
+            install(&tmp, &out).unwrap();
+            assert_eq!(
+                std::fs::read_to_string(out.join("report.md")).unwrap(),
+                "new"
+            );
+            let left: Vec<_> = std::fs::read_dir(&*d)
+                .unwrap()
+                .map(|e| e.unwrap().file_name())
+                .collect();
+            assert_eq!(left, ["scene"], "old_is_file = {old_is_file}");
+            std::fs::remove_dir_all(&out).unwrap();
+        }
+    }
 }
