@@ -172,10 +172,14 @@ pub fn lookup<'a, T>(
     m.get(name).ok_or_else(|| {
         Error::new(
             catalogue_file.display().to_string(),
-            format!(
-                "no {what} named \"{name}\"; the known {what}s are {}",
-                names(m)
-            ),
+            if m.is_empty() {
+                format!("no {what} named \"{name}\": this catalogue defines no {what}")
+            } else {
+                format!(
+                    "no {what} named \"{name}\"; the known {what}s are {}",
+                    names(m)
+                )
+            },
         )
     })
 }
@@ -364,6 +368,12 @@ fn load_materials(path: &Path) -> Result<BTreeMap<String, StockMaterial>> {
             r.processes,
             "a list such as [\"mill\"]",
         )?;
+        if processes.is_empty() {
+            return Err(Error::new(
+                path.display().to_string(),
+                format!("{s}key `processes`: empty; expected the machine kinds that work this material, e.g. [\"mill\"]"),
+            ));
+        }
         if let Some(p) = processes
             .iter()
             .find(|p| !["mill", "sla", "fdm"].contains(&p.as_str()))
