@@ -782,3 +782,39 @@ fn bench_table_prints_every_row() {
         assert!(t.contains(row), "missing {row:?} in\n{t}");
     }
 }
+
+#[test]
+fn the_tile_made_is_never_larger_than_asked_and_one_sample_at_least() {
+    // sine:n=32 at a 4 mm patch: samples of 0.125 mm.
+    let hf = gen("sine:n=32");
+    let g = TileGrid::new(&hf, 4.0, 6.0, 5.0, 1.0).unwrap();
+    assert_eq!((g.nx, g.ny), (48, 40), "exact multiples are kept");
+    // 37.3 mm is 298.4 samples: 298 of them (37.25 mm), not 298.5 rounded up.
+    let g = TileGrid::new(&hf, 4.0, 37.3, 12.1, 1.0).unwrap();
+    assert!(g.nx as f64 * g.cell_mm <= 37.3 && g.ny as f64 * g.cell_mm <= 12.1);
+    assert_eq!((g.nx, g.ny), (298, 96));
+    let e = TileGrid::new(&hf, 4.0, 0.01, 5.0, 1.0)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        e.contains("tile x") && e.contains("less than one sample"),
+        "{e}"
+    );
+}
+
+#[test]
+fn a_mill_cuts_in_whole_steps_of_its_resolution() {
+    let hf = gen("bumps:n=64");
+    let exact = millability::mill(&hf, 8.0, &ball(1.0), None).unwrap();
+    let fine = millability::mill_in_steps(&hf, 8.0, &ball(1.0), None, Some(1e-9)).unwrap();
+    assert!((fine.report.max_deviation_mm - exact.report.max_deviation_mm).abs() < 1e-6);
+    // A step coarser than part of the relief: the tool stops at whole steps above the design,
+    // so the made surface stays above it (no gouge) and departs further from it.
+    let step = 0.25 * exact.report.relief_mm;
+    let coarse = millability::mill_in_steps(&hf, 8.0, &ball(1.0), None, Some(step)).unwrap();
+    for (m, e) in coarse.made_fine.z.iter().zip(&exact.made_fine.z) {
+        assert!(*m >= *e - 1e-9, "made {m} below the exact cut {e}");
+    }
+    assert!(coarse.report.max_deviation_mm > exact.report.max_deviation_mm + 0.1 * step);
+}

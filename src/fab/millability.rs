@@ -104,19 +104,57 @@ fn finish(
     })
 }
 
-/// The surface a cutter leaves on `hf` at patch size `patch_mm`.
+/// Heights `v` in whole steps of `step` mm above `lo`, each to the nearest step: a printer's
+/// layers.
+fn in_steps(v: &[f64], lo: f64, step: f64) -> Vec<f64> {
+    v.iter()
+        .map(|v| lo + ((v - lo) / step).round() * step)
+        .collect()
+}
+
+/// Tool-centre heights `v` raised to whole steps of `step` mm above `lo`: a mill whose z moves
+/// in steps stops at the first step that does not cut into the design.
+fn up_to_steps(v: &[f64], lo: f64, step: f64) -> Vec<f64> {
+    v.iter()
+        .map(|v| lo + ((v - lo) / step - 1e-9).ceil() * step)
+        .collect()
+}
+
+/// The surface a cutter leaves on `hf` at patch size `patch_mm` (z positioned exactly).
 pub fn mill(
     hf: &Heightfield,
     patch_mm: f64,
     tool: &Tool,
     stepover_mm: Option<f64>,
 ) -> Result<Simulated> {
+    mill_in_steps(hf, patch_mm, tool, stepover_mm, None)
+}
+
+/// [`mill`] on a machine whose z moves in steps of `resolution_mm` (the catalogue's
+/// `resolution_mm`): the tool's heights at every position (the dilation of the design by the
+/// tool) are raised to whole steps above the design's lowest point before the surface the tool
+/// leaves (the erosion) is taken, so the part is never cut below the design.
+pub fn mill_in_steps(
+    hf: &Heightfield,
+    patch_mm: f64,
+    tool: &Tool,
+    stepover_mm: Option<f64>,
+    resolution_mm: Option<f64>,
+) -> Result<Simulated> {
     let r = 0.5 * tool.diameter_mm;
     let k = morph::refine_factor(hf, patch_mm, r, MAX_SIDE);
     let g = Grid::from_heightfield(hf, patch_mm, k);
+    let steps = |c: Vec<f64>| match resolution_mm {
+        Some(step) if step > 0.0 => up_to_steps(&c, g.min_max().0, step),
+        _ => c,
+    };
     let made = match tool.kind {
-        ToolKind::Ball => morph::ball_close(&g, r),
-        ToolKind::Flat => morph::flat_close_cells(g.w, g.h, &g.z, r / g.cell_mm),
+        ToolKind::Ball => morph::ball_erode(&g, &steps(morph::ball_dilate(&g, &g.z, r)), r),
+        ToolKind::Flat => {
+            let rc = r / g.cell_mm;
+            let centres = steps(morph::flat_dilate_cells(g.w, g.h, &g.z, rc));
+            morph::flat_erode_cells(g.w, g.h, &centres, rc)
+        }
     };
     let scallop = match (tool.kind, stepover_mm) {
         (ToolKind::Ball, Some(s)) => {
@@ -152,11 +190,7 @@ pub fn print(
     let g = Grid::from_heightfield(hf, patch_mm, k);
     let rc = r / g.cell_mm;
     let xy = morph::flat_close_cells(g.w, g.h, &morph::flat_open_cells(g.w, g.h, &g.z, rc), rc);
-    let (lo, _) = g.min_max();
-    let made: Vec<f64> = xy
-        .iter()
-        .map(|v| lo + ((v - lo) / layer_mm).round() * layer_mm)
-        .collect();
+    let made = in_steps(&xy, g.min_max().0, layer_mm);
     finish(hf, &g, made, k, process, patch_mm, reach_mm, None)
 }
 
@@ -164,7 +198,9 @@ pub fn print(
 pub fn simulate(hf: &Heightfield, patch_mm: f64, profile: &Profile) -> Result<Simulated> {
     let base = profile.base_thickness_mm;
     match (&profile.machine, &profile.tool) {
-        (Machine::Mill(_), Some(t)) => mill(hf, patch_mm, t, profile.stepover_mm),
+        (Machine::Mill(m), Some(t)) => {
+            mill_in_steps(hf, patch_mm, t, profile.stepover_mm, Some(m.resolution_mm))
+        }
         (Machine::Mill(_), None) => Err(crate::error::Error::new(
             profile.name.clone(),
             "a mill profile needs a tool",

@@ -57,13 +57,14 @@ fn relative_ok(hf: &Heightfield, s: f64, profile: &Profile, relief_g: f64) -> Re
     Ok(sim.report.max_deviation_mm <= profile.max_deviation_frac * relief)
 }
 
-/// The process diameter: tool, SLA pixel or FDM nozzle (mm).
+/// The process diameter: tool (or the mill's step when larger), SLA pixel or FDM nozzle (mm).
 pub fn process_diameter_mm(profile: &Profile) -> f64 {
     match (&profile.machine, &profile.tool) {
         (Machine::Sla(s), _) => s.xy_resolution_mm,
         (Machine::Fdm(f), _) => f.nozzle_mm,
-        (_, Some(t)) => t.diameter_mm,
-        (_, None) => 0.0,
+        // A mill cannot place a feature finer than its smallest step, whatever the tool.
+        (Machine::Mill(m), Some(t)) => t.diameter_mm.max(m.resolution_mm),
+        (Machine::Mill(_), None) => 0.0,
     }
 }
 
