@@ -255,12 +255,19 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
         "{log}"
     );
     let sb: serde_json::Value = serde_json::from_str(&log).unwrap();
-    assert_eq!(sb["details"][0]["budget_met"], serde_json::json!(false), "{log}");
+    assert_eq!(
+        sb["details"][0]["budget_met"],
+        serde_json::json!(false),
+        "{log}"
+    );
     // The tile made is never larger than the one asked for.
     let made = sb["details"][0]["tile_made_mm"].as_array().unwrap();
     let asked = sb["scene"]["tile_mm"].as_array().unwrap();
     for (m, a) in made.iter().zip(asked) {
-        assert!(m.as_f64().unwrap() <= a.as_f64().unwrap(), "{made:?} > {asked:?}");
+        assert!(
+            m.as_f64().unwrap() <= a.as_f64().unwrap(),
+            "{made:?} > {asked:?}"
+        );
     }
     let d = &details[0];
     for key in [
@@ -797,6 +804,25 @@ fn design_checks_inputs_first_and_reads_paths_beside_the_scene() {
     bad(
         "fixed_material = \"ggx:alpha=0.1\"\nheightmap_patch_mm = 5\n",
         "heightmap_patch_mm",
+    );
+    // A tile the profile's machine cannot hold fails before the search, not as a rejection of
+    // every candidate after it.
+    std::fs::write(
+        &scene,
+        text.replace("tile_mm = [20.0, 20.0]", "tile_mm = [1e308, 20.0]"),
+    )
+    .unwrap();
+    let e = biscale::design::run(&biscale::design::DesignJob {
+        library: Some(out.join("no-such-library")),
+        force: true,
+        ..job.clone()
+    })
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(
+        e.contains("u1.toml: key `tile_mm`") && e.contains("does not fit") && e.contains("1e308"),
+        "{e}"
     );
     // Without --library, an unknown library profile is named by its key, before the existing
     // output (u1/, from the run above) is looked at; an --outputs that is a file fails before

@@ -182,6 +182,13 @@ pub fn run(job: &DesignJob) -> Result<String> {
         crate::library::profile::LibraryProfile::load(&scene.library_profile)
             .map_err(|e| e.within(ctx("library_profile")))?;
     }
+    crate::fab::check_tile(&profile, scene.tile_mm).map_err(|e| {
+        if e.context == "tile_mm" {
+            Error::new(ctx("tile_mm"), e.message)
+        } else {
+            e
+        }
+    })?;
     crate::atomic_write::check_output_dir(&job.outputs, "--outputs")?;
     let out_dir = job.outputs.join(&scene.name);
     if out_dir.exists() && !job.force {

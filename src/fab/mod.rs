@@ -77,6 +77,40 @@ fn reject(v: &mut Vec<Rejection>, code: &str, message: String) {
     });
 }
 
+/// Whether a `tile_mm` tile can be made with `profile` at all, whatever the detail: it fits the
+/// machine's x-y envelope and, on a mill, the base leaves z travel for a relief. Checked before
+/// a search ([`check_detail`] checks each detail's own height).
+pub fn check_tile(profile: &Profile, tile_mm: [f64; 2]) -> Result<()> {
+    use crate::error::show_num;
+    let (ex, ey, ez) = profile.machine.envelope_mm();
+    if tile_mm[0] > ex || tile_mm[1] > ey {
+        return Err(Error::new(
+            "tile_mm",
+            format!(
+                "{} × {} mm does not fit machine '{}' ({} × {} mm); make the tile smaller or \
+                 choose another profile",
+                show_num(tile_mm[0]),
+                show_num(tile_mm[1]),
+                profile.machine_name,
+                show_num(ex),
+                show_num(ey)
+            ),
+        ));
+    }
+    if matches!(profile.machine, Machine::Mill(_)) && profile.base_thickness_mm >= ez {
+        return Err(Error::new(
+            profile.name.clone(),
+            format!(
+                "base_thickness_mm = {} leaves no z travel for a relief on machine '{}' ({} mm)",
+                show_num(profile.base_thickness_mm),
+                profile.machine_name,
+                show_num(ez)
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Check `hf` against `profile`: scale window → made surface and its deviation → feature sizes
 /// → cost of one tile. Infeasible details are not errors: they come back with `feasible = false`
 /// and one [`Rejection`] per reason. Errors are for bad options only.
