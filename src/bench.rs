@@ -4,6 +4,7 @@
 use crate::bvndf::{BvndfConfig, CompactBvndf};
 use crate::error::Result;
 use crate::exact::ExactEvaluator;
+use crate::fast::FACET_WIDTH;
 use crate::frame::DirPair;
 use crate::generators::parse_generator;
 use crate::heightfield::Heightfield;
@@ -218,8 +219,8 @@ pub fn accuracy(cases: usize, seed: u64, cfg: &BvndfConfig, progress: &Progress)
         let t = Instant::now();
         let geo = CompactBvndf::build(&hf, cfg);
         build_s += t.elapsed().as_secs_f64();
-        let pre = Prefiltered::build(&mat, &PrefilterConfig::default());
-        let fast = crate::fast::fbar(&geo, &pre, &dirs);
+        let pre = Prefiltered::build_split(&mat, &PrefilterConfig::default(), FACET_WIDTH);
+        let fast = crate::fast::fbar_with_facets(&geo, &pre, &dirs);
         let e = relative_rms(&fast, &exact);
         let keep: Vec<usize> = (0..pairs.len())
             .filter(|&i| pairs[i].theta_i <= 85.0 && pairs[i].theta_o <= 85.0)

@@ -41,8 +41,10 @@
 //! most of the marched rays' noise on rough surfaces.
 
 use crate::dirgrid::DirGrid;
+use crate::facetindex::FacetIndex;
 use crate::frame::{Rotation, Vec3};
 use crate::heightfield::Heightfield;
+use crate::material::Material;
 use crate::visibility::{ray_lattice, Visibility};
 use crate::vmf::{kappa_from_resultant, Vmf};
 use rayon::prelude::*;
@@ -125,6 +127,11 @@ pub struct CompactBvndf {
     /// Per curved cluster, its whole normal distribution split into sub-lobes (empty for planar
     /// clusters and with `sub_lobes = 1`).
     pub shapes: Vec<Vec<SubLobe>>,
+    /// The curved clusters' facets by normal direction, for glossy lobes too sharp for the
+    /// prefiltered table ([`Self::sharp_fbar`]).
+    pub facets: FacetIndex,
+    /// `Σ A n` of each cluster's facets, in units of `A_base`.
+    pub resultants: Vec<Vec3>,
 }
 
 /// One part of a cluster's normal distribution, from all its facets (visibility aside).
@@ -437,6 +444,11 @@ impl CompactBvndf {
             cluster_area[k as usize] += a;
         }
         let shapes = cluster_shapes(&normals, &areas, &assign, &planar, cfg.sub_lobes);
+        let facets = FacetIndex::build(&normals, &areas, &assign, |k| !planar[k]);
+        let mut resultants = vec![Vec3::default(); kc];
+        for ((n, a), &k) in normals.iter().zip(&areas).zip(&assign) {
+            resultants[k as usize] = resultants[k as usize] + *n * *a;
+        }
         CompactBvndf {
             grid,
             clusters: kc,
@@ -445,14 +457,90 @@ impl CompactBvndf {
             planar,
             cluster_area,
             shapes,
+            facets,
+            resultants,
         }
     }
 
-    /// Bytes of the stored representation (the table, the centres and the sub-lobes).
+    /// Bytes of the stored representation (the table, the centres, the sub-lobes and the facet
+    /// index).
     pub fn bytes(&self) -> usize {
         self.table.len() * 4
-            + self.centres.len() * 25
+            + self.centres.len() * 49
             + self.shapes.iter().map(Vec::len).sum::<usize>() * std::mem::size_of::<SubLobe>()
+            + self.facets.bytes()
+    }
+
+    #[inline]
+    fn entry(&self, a: usize, b: usize, c: usize) -> &[f32] {
+        &self.table[(pair_index(a, b) * self.clusters + c) * STRIDE..][..STRIDE]
+    }
+
+    /// `a_v(wo)` (in units of `A_base`) from the table's diagonal, interpolated with `wo`'s node
+    /// weights `wb`.
+    fn visible_area(&self, wo: Vec3, wb: &[(usize, f64)]) -> f64 {
+        let mut diag = 0.0;
+        for &(b, vb) in wb {
+            if vb == 0.0 {
+                continue;
+            }
+            for c in 0..self.clusters {
+                let e = self.entry(b, b, c);
+                diag += vb * (wo.x * e[0] as f64 + wo.y * e[1] as f64 + wo.z * e[2] as f64);
+            }
+        }
+        diag
+    }
+
+    /// The part of `fbar(wi, wo)` that the glossy lobes of `sharp` (too narrow for the
+    /// prefiltered table) add on the curved clusters, summed over their facets within `radius`
+    /// of the half vector ([`FacetIndex::near`]):
+    /// `Σ_f ρ_c A_f (n_f·wo)+ (n_f·wi)+ f_sharp(n_f, wi, wo) / a_v(wo)`, where `ρ_c` is the
+    /// jointly visible fraction of the facet's cluster (its tabulated visible projected area
+    /// towards `wo` over its facets' projected area, `Σ_s (R_s·wo)+` over its sub-lobes): the
+    /// facet sum of the exact evaluator, with each facet's visibility taken as its cluster's.
+    /// Planar clusters are not included: their lobe is a delta at their exact normal already.
+    pub fn sharp_fbar(&self, wi: Vec3, wo: Vec3, sharp: &Material, radius: f64) -> f64 {
+        if wi.z <= 0.0 || wo.z <= 0.0 || sharp.lobes.is_empty() || self.facets.is_empty() {
+            return 0.0;
+        }
+        let wb = self.grid.weights(wo);
+        let diag = self.visible_area(wo, &wb);
+        if !(diag > 0.0) {
+            return 0.0;
+        }
+        let h = (wi + wo).normalized();
+        let wa = self.grid.weights(wi);
+        let mut rho: Vec<Option<f64>> = vec![None; self.clusters];
+        let mut s = 0.0;
+        self.facets.near(h, radius, |n, a, c| {
+            let (ci, co) = (n.dot(wi), n.dot(wo));
+            if ci <= 0.0 || co <= 0.0 {
+                return;
+            }
+            let r = *rho[c].get_or_insert_with(|| {
+                let g = blend(&wa, &wb, |na, b| self.entry(na, b, c));
+                let seen = wo.x * g[0] + wo.y * g[1] + wo.z * g[2];
+                let facing = match self.shapes.get(c).filter(|sh| !sh.is_empty()) {
+                    Some(sh) => sh.iter().map(|p| p.resultant.dot(wo).max(0.0)).sum(),
+                    None => self.resultants[c].dot(wo).max(0.0),
+                };
+                if facing > 0.0 {
+                    (seen / facing).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                }
+            });
+            if r > 0.0 {
+                s += r * a * co * ci * sharp.eval(n, wi, wo);
+            }
+        });
+        let v = s / diag;
+        if v.is_finite() {
+            v
+        } else {
+            0.0
+        }
     }
 
     /// The lobes of `gamma(·; wi, wo)`: `(weight, vMF)` per cluster, weights summing to at most 1.
@@ -464,22 +552,10 @@ impl CompactBvndf {
         if wi.z <= 0.0 || wo.z <= 0.0 {
             return;
         }
-        let kc = self.clusters;
         let wa = self.grid.weights(wi);
         let wb = self.grid.weights(wo);
-        let entry = |a: usize, b: usize, c: usize| -> &[f32] {
-            &self.table[(pair_index(a, b) * kc + c) * STRIDE..][..STRIDE]
-        };
-        let mut diag = 0.0;
-        for &(b, vb) in &wb {
-            if vb == 0.0 {
-                continue;
-            }
-            for c in 0..kc {
-                let e = entry(b, b, c);
-                diag += vb * (wo.x * e[0] as f64 + wo.y * e[1] as f64 + wo.z * e[2] as f64);
-            }
-        }
+        let entry = |a: usize, b: usize, c: usize| -> &[f32] { self.entry(a, b, c) };
+        let diag = self.visible_area(wo, &wb);
         let clusters = Clusters {
             centres: &self.centres,
             planar: &self.planar,

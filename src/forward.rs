@@ -154,17 +154,28 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
                 ),
             );
             let t = Instant::now();
-            let pre = Prefiltered::build(&mat, &job.prefilter);
+            let pre = Prefiltered::build_split(&mat, &job.prefilter, crate::fast::FACET_WIDTH);
             log(
                 job.quiet,
                 format!(
-                    "fast: prefiltered material ({:.2} MB) built in {:.1} ms",
+                    "fast: prefiltered material ({:.2} MB) built in {:.1} ms{}",
                     pre.bytes() as f64 / 1e6,
-                    t.elapsed().as_secs_f64() * 1e3
+                    t.elapsed().as_secs_f64() * 1e3,
+                    match pre.sharp() {
+                        Some((m, r)) => format!(
+                            "; its lobes narrower than {} rad ({}) are summed over the {} facet \
+                             normals of the curved clusters within {:.3} rad of each half vector",
+                            crate::fast::FACET_WIDTH,
+                            m.spec(),
+                            geo.facets.len(),
+                            r
+                        ),
+                        None => String::new(),
+                    }
                 ),
             );
             let t = Instant::now();
-            let v = crate::fast::fbar(&geo, &pre, &dirs);
+            let v = crate::fast::fbar_with_facets(&geo, &pre, &dirs);
             log(
                 job.quiet,
                 format!(

@@ -29,6 +29,7 @@ pub mod texture;
 pub mod bvndf;
 pub mod dirgrid;
 pub mod exact;
+pub mod facetindex;
 pub mod fast;
 pub mod gamma;
 pub mod lightlobes;

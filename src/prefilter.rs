@@ -63,6 +63,12 @@ pub struct Prefiltered {
     min_width: Option<f64>,
     /// [`Self::resolves_shape`], read for every pair the fast evaluator assembles.
     resolves: bool,
+    /// With [`Self::build_split`]: the glossy lobes too sharp for the table, which are left out
+    /// of it and summed over facets instead, and their support radius.
+    sharp: Option<(Material, f64)>,
+    /// With [`Self::build_split`]: the material of the table (without the sharp lobes), which
+    /// also answers for point lobes other than deltas.
+    rest: Option<Material>,
 }
 
 impl Prefiltered {
@@ -243,7 +249,45 @@ impl Prefiltered {
             data,
             min_width: mat.min_lobe_width(),
             resolves: resolves_shape(mat),
+            sharp: None,
+            rest: None,
         }
+    }
+
+    /// As [`Self::build`], but the material's glossy lobes narrower than `width` radians are
+    /// left out of the table and kept apart ([`Self::sharp`]), for an evaluator that sums them
+    /// over the geometry's facets ([`crate::fast::fbar_with_facets`]). A delta lobe (a planar
+    /// cluster) still gets the whole material at its centre. Without such lobes, the same as
+    /// [`Self::build`].
+    pub fn build_split(mat: &Material, cfg: &PrefilterConfig, width: f64) -> Self {
+        let (rest, sharp) = mat.split_by_width(width);
+        if sharp.lobes.is_empty() {
+            return Self::build(mat, cfg);
+        }
+        let radius = sharp
+            .lobes
+            .iter()
+            .filter_map(|l| l.support_radius())
+            .fold(0.0, f64::max);
+        let data = if rest.lobes.is_empty() {
+            vec![0.0; cfg.n_half * KAPPAS.len() * cfg.n_theta_mu * cfg.n_phi_mu]
+        } else {
+            Self::build(&rest, cfg).data
+        };
+        Prefiltered {
+            cfg: cfg.clone(),
+            material: mat.clone(),
+            data,
+            min_width: rest.min_lobe_width(),
+            resolves: resolves_shape(&rest),
+            sharp: Some((sharp, radius)),
+            rest: Some(rest),
+        }
+    }
+
+    /// The lobes left out of the table by [`Self::build_split`], and their support radius.
+    pub fn sharp(&self) -> Option<(&Material, f64)> {
+        self.sharp.as_ref().map(|(m, r)| (m, *r))
     }
 
     /// A prefiltered material from a stored table (a library column) and the material it was
@@ -266,6 +310,8 @@ impl Prefiltered {
             data,
             min_width: mat.min_lobe_width(),
             resolves: resolves_shape(mat),
+            sharp: None,
+            rest: None,
         })
     }
 
@@ -346,8 +392,13 @@ impl Prefiltered {
     ) -> f64 {
         if self.is_point(lobe) {
             let c = lobe.mu.dot(wi);
+            // A delta (planar cluster) sees the whole material; other point lobes the table's.
+            let m = match &self.rest {
+                Some(rest) if lobe.kappa < KAPPA_MAX => rest,
+                _ => &self.material,
+            };
             return if c > 0.0 {
-                self.material.eval(lobe.mu, wi, wo) * c
+                m.eval(lobe.mu, wi, wo) * c
             } else {
                 0.0
             };

@@ -225,6 +225,13 @@ fn extreme_geometry_and_materials_through_the_fast_evaluator() {
             for (p, x) in pairs.iter().zip(&v) {
                 assert!(ok(*x), "fast {} {spec} at {p:?}: {x}", hf.name);
             }
+            // As `forward` runs it: lobes narrower than FACET_WIDTH summed over facets.
+            let split =
+                Prefiltered::build_split(&parse_material(spec).unwrap(), &cfg, fast::FACET_WIDTH);
+            let v = fast::fbar_with_facets(&geo, &split, &pairs);
+            for (p, x) in pairs.iter().zip(&v) {
+                assert!(ok(*x), "fast (facets) {} {spec} at {p:?}: {x}", hf.name);
+            }
         }
     }
 }

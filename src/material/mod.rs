@@ -78,6 +78,23 @@ impl Lobe {
             Lobe::Blinn(b) => Some((2.0 / (b.n + 2.0)).sqrt()),
         }
     }
+
+    /// The angle between a facet normal and the half vector beyond which a glossy lobe is
+    /// negligible: `D` below 1e-6 of its peak for GGX (30 α; the tail beyond holds about
+    /// `α² / (30 α)² ≈ 0.1 %` of the lobe), below `e^-36` for Beckmann, Cook–Torrance and Ward
+    /// (6 α), below `e^-18` for Blinn–Phong (`6 / sqrt(n)`). `None` for smooth lobes.
+    pub fn support_radius(&self) -> Option<f64> {
+        let r = match self {
+            Lobe::Lambert(_) | Lobe::Merl(_) => return None,
+            Lobe::Microfacet(m) => match m.dist {
+                Distribution::Ggx => 30.0 * m.alpha,
+                Distribution::Beckmann => 6.0 * m.alpha,
+            },
+            Lobe::Ward(w) => 6.0 * w.alpha,
+            Lobe::Blinn(b) => 6.0 / b.n.max(1.0).sqrt(),
+        };
+        Some(r.min(std::f64::consts::FRAC_PI_2))
+    }
 }
 
 /// A small-scale material: a sum of lobes and a colour multiplier whose channel mean is 1.
@@ -132,6 +149,27 @@ impl Material {
             ));
         }
         s
+    }
+
+    /// The material split into its lobes at least `width` wide (and smooth ones) and its glossy
+    /// lobes narrower than `width`, each part with this material's colour. Either may have no
+    /// lobes.
+    pub fn split_by_width(&self, width: f64) -> (Material, Material) {
+        let (sharp, rest): (Vec<Lobe>, Vec<Lobe>) = self
+            .lobes
+            .iter()
+            .cloned()
+            .partition(|l| l.lobe_width().is_some_and(|w| w < width));
+        (
+            Material {
+                lobes: rest,
+                color: self.color,
+            },
+            Material {
+                lobes: sharp,
+                color: self.color,
+            },
+        )
     }
 
     /// The narrowest glossy lobe width (radians), if any lobe is glossy.

@@ -1,0 +1,160 @@
+//! The facet normals of a heightfield's curved normal clusters, binned by direction: what the
+//! fast evaluator sums, facet by facet, for glossy lobes too sharp for the prefiltered table
+//! ([`crate::bvndf::CompactBvndf::sharp_fbar`]).
+//!
+//! A lobe much narrower than the spacing of a triangulated surface's facet normals (GGX
+//! `alpha = 0.001` on smooth bumps) makes `fbar` a sum of spikes, one per facet whose normal
+//! meets the half vector; a smooth vMF per cluster, or its sub-lobes, averages them away. Such a
+//! lobe is non-zero only for normals within its support radius of the half vector
+//! ([`crate::material::Lobe::support_radius`]), so only those facets are visited: the normals are
+//! binned on a square grid over `(n_x, n_y)` (a cap of angle `r` around `h` lies within `r` of
+//! `(h_x, h_y)` there), and facets of one cluster with the same normal are merged.
+
+use crate::frame::Vec3;
+
+/// Grid cells per side over `n_x, n_y ∈ [-1, 1]`.
+const CELLS: usize = 64;
+
+/// Facets binned by normal direction (planar clusters left out: their normal is exact already).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FacetIndex {
+    /// `start[c]..start[c + 1]`: the facets of cell `c` (row-major, `CELLS²` cells).
+    start: Vec<u32>,
+    normals: Vec<Vec3>,
+    /// Areas in units of the base area.
+    areas: Vec<f64>,
+    cluster: Vec<u16>,
+}
+
+fn cell_of(v: f64) -> usize {
+    (((v + 1.0) * 0.5 * CELLS as f64).floor().max(0.0) as usize).min(CELLS - 1)
+}
+
+impl FacetIndex {
+    /// Index the facets (`normals`, `areas` in units of the base area, cluster `assign`) whose
+    /// cluster `keep` accepts.
+    pub fn build(
+        normals: &[Vec3],
+        areas: &[f64],
+        assign: &[u16],
+        keep: impl Fn(usize) -> bool,
+    ) -> Self {
+        let key = |n: &Vec3| cell_of(n.y) * CELLS + cell_of(n.x);
+        let mut idx: Vec<usize> = (0..normals.len())
+            .filter(|&i| keep(assign[i] as usize) && areas[i] > 0.0)
+            .collect();
+        idx.sort_by(|&a, &b| {
+            let (na, nb) = (&normals[a], &normals[b]);
+            (key(na), assign[a])
+                .cmp(&(key(nb), assign[b]))
+                .then(na.x.total_cmp(&nb.x))
+                .then(na.y.total_cmp(&nb.y))
+                .then(na.z.total_cmp(&nb.z))
+        });
+        let mut out = FacetIndex {
+            start: vec![0; CELLS * CELLS + 1],
+            normals: Vec::new(),
+            areas: Vec::new(),
+            cluster: Vec::new(),
+        };
+        let mut counts = vec![0u32; CELLS * CELLS];
+        for &i in &idx {
+            let (n, k) = (normals[i], assign[i]);
+            let same = out.normals.last().is_some_and(|m| *m == n)
+                && out.cluster.last().is_some_and(|c| *c == k);
+            if same {
+                if let Some(a) = out.areas.last_mut() {
+                    *a += areas[i];
+                }
+            } else {
+                out.normals.push(n);
+                out.areas.push(areas[i]);
+                out.cluster.push(k);
+                counts[key(&n)] += 1;
+            }
+        }
+        for (c, n) in counts.iter().enumerate() {
+            out.start[c + 1] = out.start[c] + n;
+        }
+        out
+    }
+
+    /// Distinct (cluster, normal) entries.
+    pub fn len(&self) -> usize {
+        self.normals.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.normals.is_empty()
+    }
+
+    /// Bytes held.
+    pub fn bytes(&self) -> usize {
+        self.start.len() * 4 + self.normals.len() * (24 + 8 + 2)
+    }
+
+    /// Call `f(normal, area, cluster)` for every facet whose normal is within `radius` radians
+    /// of the unit vector `h`.
+    pub fn near(&self, h: Vec3, radius: f64, mut f: impl FnMut(Vec3, f64, usize)) {
+        let cos_r = radius.cos();
+        let (x0, x1) = (cell_of(h.x - radius), cell_of(h.x + radius));
+        let (y0, y1) = (cell_of(h.y - radius), cell_of(h.y + radius));
+        for cy in y0..=y1 {
+            let row = cy * CELLS;
+            let (s, e) = (
+                self.start[row + x0] as usize,
+                self.start[row + x1 + 1] as usize,
+            );
+            for i in s..e {
+                let n = self.normals[i];
+                if n.dot(h) >= cos_r {
+                    f(n, self.areas[i], self.cluster[i] as usize);
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn near_finds_exactly_the_facets_within_the_radius() {
+        // A fan of normals at polar angles 0.01..0.6 rad in steps of 0.01, azimuths every 10°, two
+        // clusters, each normal twice (merged).
+        let mut normals = Vec::new();
+        let mut assign = Vec::new();
+        for i in 1..60 {
+            for j in 0..36 {
+                let (t, p) = (i as f64 * 0.01, (j as f64 * 10.0).to_radians());
+                let n = Vec3::new(t.sin() * p.cos(), t.sin() * p.sin(), t.cos());
+                for _ in 0..2 {
+                    normals.push(n);
+                    assign.push((j % 2) as u16);
+                }
+            }
+        }
+        let areas = vec![0.5; normals.len()];
+        let ix = FacetIndex::build(&normals, &areas, &assign, |_| true);
+        assert_eq!(ix.len(), normals.len() / 2);
+        let h = Vec3::new(0.2, 0.1, 1.0).normalized();
+        for r in [0.0, 0.03, 0.1, 0.5] {
+            let mut got = Vec::new();
+            ix.near(h, r, |n, a, _| {
+                assert_eq!(a, 1.0);
+                got.push(n);
+            });
+            let want = (0..normals.len())
+                .step_by(2)
+                .filter(|&i| normals[i].dot(h) >= r.cos())
+                .count();
+            assert_eq!(got.len(), want, "radius {r}");
+        }
+        // A cluster left out is not indexed.
+        assert_eq!(
+            FacetIndex::build(&normals, &areas, &assign, |k| k == 0).len(),
+            normals.len() / 4
+        );
+    }
+}
