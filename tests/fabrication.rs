@@ -197,6 +197,22 @@ fn bad_catalogue_names_file_section_and_key() {
     }
     let p = FabPaths::new(&d);
     assert!(load_profile("p", &p).is_ok());
+    // Found from a scene in `d` (whatever the working directory), with the shipped names still
+    // reachable from the user's own profiles directory.
+    std::fs::write(
+        d.join("profiles/fabrication/mine.toml"),
+        "extends = \"cnc-ball1-aluminium\"\nbase_thickness_mm = 4\n",
+    )
+    .unwrap();
+    let here = FabPaths::for_scene(Some(&d));
+    let mine = load_profile("mine", &here).unwrap();
+    assert_eq!(mine.base_thickness_mm, 4.0);
+    assert!(load_profile("cnc-ball3-wood", &here).is_ok());
+    assert!(
+        mine.catalogues.iter().all(|c| c.starts_with(&*d)),
+        "{:?}",
+        mine.catalogues
+    );
     let tools = std::fs::read_to_string(src.join("tools.toml")).unwrap();
     let cases = [
         (

@@ -9,7 +9,7 @@ use biscale::library::Library;
 use biscale::material::parse_material;
 use biscale::solve::{Final, Look, SolveOptions};
 use common::TestDir;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 /// The `tiny` library, built once per test process and shared by its tests (in cargo's
@@ -752,6 +752,25 @@ fn design_checks_inputs_first_and_reads_paths_beside_the_scene() {
     let scene = scene_dir.join("u1.toml");
     std::fs::write(&scene, &text).unwrap();
     job.scene = Some(scene.clone());
+    // The shop's own catalogue beside the scene (its 0.5 mm ball is 0.6 mm): read from the
+    // scene's directory whatever the working directory (the tests run in the crate's, which
+    // has the shipped catalogue).
+    let cat = scene_dir.join("constraints");
+    std::fs::create_dir_all(&cat).unwrap();
+    for f in ["tools.toml", "machines.toml", "materials.toml"] {
+        let text = std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("constraints")
+                .join(f),
+        )
+        .unwrap();
+        let text = if f == "tools.toml" {
+            text.replacen("diameter_mm = 0.5\n", "diameter_mm = 0.6\n", 1)
+        } else {
+            text
+        };
+        std::fs::write(cat.join(f), text).unwrap();
+    }
     // A killed earlier run's partial output (no such process).
     let stale = out.join(".u1.partial-4000000000");
     std::fs::create_dir_all(&stale).unwrap();
@@ -761,10 +780,12 @@ fn design_checks_inputs_first_and_reads_paths_beside_the_scene() {
         serde_json::from_slice(&std::fs::read(out.join("u1/summary.json")).unwrap()).unwrap();
     assert_eq!(
         summary["fabrication_profile"]["tool"]["diameter_mm"].as_f64(),
-        Some(0.5),
+        Some(0.6),
         "{}",
         summary["fabrication_profile"]
     );
+    let cats = summary["fabrication_profile"]["catalogues"].to_string();
+    assert!(cats.contains("scenes/constraints/tools.toml"), "{cats}");
     // The fixed geometry's relief is not refined (only the rotation and the material are).
     for d in summary["details"].as_array().unwrap() {
         if let Some(ch) = d["refinement"]["changes"].as_array() {

@@ -154,7 +154,8 @@ pub fn run(job: &DesignJob) -> Result<String> {
         Some(p) => format!("{}: key `{key}`", p.display()),
         None => format!("built-in scene: key `{key}`"),
     };
-    let profile = load_profile(&scene.profile, &FabPaths::default_paths())
+    let scene_dir = job.scene.as_deref().and_then(Path::parent);
+    let profile = load_profile(&scene.profile, &FabPaths::for_scene(scene_dir))
         .map_err(|e| e.within(ctx("profile")))?;
     let edits = Edits {
         brightness: scene.brightness,

@@ -4,9 +4,11 @@
 //! [`super::catalogue`]) and may start from another profile with `extends = "NAME"` (a shipped
 //! name or a path relative to the extending file), overriding any keys it sets.
 //!
-//! Lookup: [`FabPaths::default_paths`] uses `./constraints` and `./profiles/fabrication` when the
-//! working directory has `constraints/tools.toml`, else the same directories at the crate root
-//! (`CARGO_MANIFEST_DIR`); [`FabPaths::new`] overrides the base directory.
+//! Lookup: [`FabPaths::for_scene`] takes `constraints/` (with its `tools.toml`) and
+//! `profiles/fabrication/` from the scene's directory, else from the working directory, else the
+//! shipped ones at the crate root (`CARGO_MANIFEST_DIR`); a profile name not found in a user's
+//! own `profiles/fabrication/` is looked up among the shipped ones next. [`FabPaths::new`] fixes
+//! the base directory.
 
 use super::catalogue::{lookup, Catalogue, Machine, StockMaterial, Tool};
 use crate::error::{Error, Result};
@@ -20,6 +22,9 @@ use std::path::{Path, PathBuf};
 pub struct FabPaths {
     pub constraints: PathBuf,
     pub profiles: PathBuf,
+    /// Where a profile name that `profiles` lacks is looked up next (the shipped profiles, when
+    /// `profiles` is a user's own directory).
+    pub fallback_profiles: Option<PathBuf>,
 }
 
 impl FabPaths {
@@ -28,42 +33,61 @@ impl FabPaths {
         FabPaths {
             constraints: base.join("constraints"),
             profiles: base.join("profiles").join("fabrication"),
+            fallback_profiles: None,
         }
     }
-    /// Each from the working directory if it has it (`constraints/tools.toml`,
-    /// `profiles/fabrication/`), else from the crate root: a shop's own catalogue next to the
-    /// shipped profiles, or its own profiles with the shipped catalogue.
+
+    /// [`Self::for_scene`] without a scene: the working directory's, else the shipped ones.
     pub fn default_paths() -> FabPaths {
-        let (here, shipped) = (
-            FabPaths::new(Path::new(".")),
-            FabPaths::new(Path::new(env!("CARGO_MANIFEST_DIR"))),
-        );
+        Self::for_scene(None)
+    }
+
+    /// Each from the scene's directory if it has it (`constraints/tools.toml`,
+    /// `profiles/fabrication/`), else from the working directory, else from the crate root (a
+    /// shop's own catalogue next to the shipped profiles, or its own profiles with the shipped
+    /// catalogue). So a scene moved with its `constraints/` reads the same catalogue from any
+    /// working directory. Shipped profile names stay reachable from a user's own profiles
+    /// directory.
+    pub fn for_scene(scene_dir: Option<&Path>) -> FabPaths {
+        let shipped = FabPaths::new(Path::new(env!("CARGO_MANIFEST_DIR")));
+        let bases: Vec<FabPaths> = scene_dir
+            .map(FabPaths::new)
+            .into_iter()
+            .chain(std::iter::once(FabPaths::new(Path::new("."))))
+            .collect();
+        let constraints = bases
+            .iter()
+            .map(|b| b.constraints.clone())
+            .find(|c| c.join("tools.toml").is_file())
+            .unwrap_or_else(|| shipped.constraints.clone());
+        let own = bases
+            .iter()
+            .map(|b| b.profiles.clone())
+            .find(|p| p.is_dir());
         FabPaths {
-            constraints: if here.constraints.join("tools.toml").is_file() {
-                here.constraints
-            } else {
-                shipped.constraints
-            },
-            profiles: if here.profiles.is_dir() {
-                here.profiles
-            } else {
-                shipped.profiles
-            },
+            constraints,
+            fallback_profiles: own.as_ref().map(|_| shipped.profiles.clone()),
+            profiles: own.unwrap_or(shipped.profiles),
         }
     }
-    /// Names of the shipped profiles (file stems), sorted.
+    /// Names of the profiles in `profiles` (file stems), sorted.
     pub fn shipped_profiles(&self) -> Result<Vec<String>> {
-        let rd = std::fs::read_dir(&self.profiles)
-            .map_err(|e| Error::io(&self.profiles, "list the profiles directory", e))?;
-        let mut v: Vec<String> = rd
-            .filter_map(|e| e.ok())
-            .map(|e| e.path())
-            .filter(|p| p.extension().is_some_and(|x| x == "toml"))
-            .filter_map(|p| p.file_stem().map(|s| s.to_string_lossy().into_owned()))
-            .collect();
-        v.sort();
-        Ok(v)
+        profile_names(&self.profiles)
     }
+}
+
+/// Names of the profiles in `dir` (file stems), sorted.
+fn profile_names(dir: &Path) -> Result<Vec<String>> {
+    let rd =
+        std::fs::read_dir(dir).map_err(|e| Error::io(dir, "list the profiles directory", e))?;
+    let mut v: Vec<String> = rd
+        .filter_map(|e| e.ok())
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|x| x == "toml"))
+        .filter_map(|p| p.file_stem().map(|s| s.to_string_lossy().into_owned()))
+        .collect();
+    v.sort();
+    Ok(v)
 }
 
 /// A resolved, validated profile.
@@ -73,6 +97,8 @@ pub struct Profile {
     pub name: String,
     /// The files read, the profile first, then what it extends.
     pub files: Vec<PathBuf>,
+    /// The catalogue files its machine, tool and material come from.
+    pub catalogues: Vec<PathBuf>,
     pub description: String,
     pub machine_name: String,
     pub machine: Machine,
@@ -143,11 +169,17 @@ fn resolve_spec(spec: &str, rel_to: Option<&Path>, paths: &FabPaths) -> Result<P
         }
         return Ok(p);
     }
-    let p = paths.profiles.join(format!("{spec}.toml"));
-    if p.is_file() {
-        return Ok(p);
+    for dir in std::iter::once(&paths.profiles).chain(paths.fallback_profiles.as_ref()) {
+        let p = dir.join(format!("{spec}.toml"));
+        if p.is_file() {
+            return Ok(p);
+        }
     }
-    let known = paths.shipped_profiles().unwrap_or_default().join(", ");
+    let mut known = paths.shipped_profiles().unwrap_or_default();
+    if let Some(f) = &paths.fallback_profiles {
+        known.extend(profile_names(f).unwrap_or_default());
+    }
+    let known = known.join(", ");
     Err(Error::new(
         spec,
         format!(
@@ -403,5 +435,9 @@ fn build(
             "per hour",
         )?,
         files: chain,
+        catalogues: ["tools.toml", "machines.toml", "materials.toml"]
+            .iter()
+            .map(|f| cat.dir.join(f))
+            .collect(),
     })
 }
