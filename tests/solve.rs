@@ -799,12 +799,8 @@ fn design_checks_inputs_first_and_reads_paths_beside_the_scene() {
     }
     // Bad input is reported before the library is opened: a library that does not exist is
     // not what the error is about.
-    let bad = |extra: &str, want: &str| {
-        let t = text.replace(
-            "fixed_geometry = \"vgroove:n=32,period=8,depth=2\"\n",
-            extra,
-        );
-        std::fs::write(&scene, t).unwrap();
+    let bad_scene = |t: String, want: &[&str]| {
+        std::fs::write(&scene, &t).unwrap();
         let e = biscale::design::run(&biscale::design::DesignJob {
             library: Some(out.join("no-such-library")),
             force: true,
@@ -813,7 +809,19 @@ fn design_checks_inputs_first_and_reads_paths_beside_the_scene() {
         .err()
         .unwrap()
         .to_string();
-        assert!(e.contains(want) && e.contains("u1.toml"), "{extra}: {e}");
+        assert!(
+            e.contains("u1.toml") && want.iter().all(|w| e.contains(w)),
+            "{t}: {e}"
+        );
+    };
+    let bad = |extra: &str, want: &str| {
+        bad_scene(
+            text.replace(
+                "fixed_geometry = \"vgroove:n=32,period=8,depth=2\"\n",
+                extra,
+            ),
+            &[want],
+        )
     };
     bad(
         "fixed_material = \"ggx:alpah=0.2\"\n",
@@ -828,22 +836,9 @@ fn design_checks_inputs_first_and_reads_paths_beside_the_scene() {
     );
     // A tile the profile's machine cannot hold fails before the search, not as a rejection of
     // every candidate after it.
-    std::fs::write(
-        &scene,
+    bad_scene(
         text.replace("tile_mm = [20.0, 20.0]", "tile_mm = [1e308, 20.0]"),
-    )
-    .unwrap();
-    let e = biscale::design::run(&biscale::design::DesignJob {
-        library: Some(out.join("no-such-library")),
-        force: true,
-        ..job.clone()
-    })
-    .err()
-    .unwrap()
-    .to_string();
-    assert!(
-        e.contains("u1.toml: key `tile_mm`") && e.contains("does not fit") && e.contains("1e308"),
-        "{e}"
+        &["u1.toml: key `tile_mm`", "does not fit", "1e308"],
     );
     // Without --library, an unknown library profile is named by its key, before the existing
     // output (u1/, from the run above) is looked at; an --outputs that is a file fails before
