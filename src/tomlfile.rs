@@ -74,6 +74,27 @@ fn map_error(path: &Path, src: &str, msg: &str, span: Option<std::ops::Range<usi
     };
     if let Some(k) = backticked(msg, "unknown field ") {
         let known = msg.split_once("expected ").map(|x| x.1).unwrap_or("");
+        // An unquoted header with a dot (`[ball-0.5mm]`) nests a table named after the part
+        // behind the dot, which the error then reports as an unknown key, sometimes with no
+        // position: find that header.
+        let dotted = src
+            .lines()
+            .enumerate()
+            .map(|(i, l)| (i + 1, l.trim()))
+            .find(|(_, l)| {
+                l.starts_with('[') && !l.contains('"') && l.ends_with(&format!(".{k}]"))
+            });
+        if let Some((n, l)) = dotted {
+            let s = l.trim_matches(|c| c == '[' || c == ']');
+            return Error::new(
+                file,
+                format!(
+                    "[{s}] (line {n}): a dot in a table name nests tables, so `{k}` is read as a \
+                     key of [{}]; write [\"{s}\"] for one name with a dot",
+                    s.rsplit_once('.').map(|x| x.0).unwrap_or(s)
+                ),
+            );
+        }
         let hint = match &section {
             Some(s) if s.contains('.') && !s.contains('"') => {
                 format!(" (a dot in [{s}] nests tables: write [\"{s}\"] for one name with a dot)")

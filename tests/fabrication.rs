@@ -227,6 +227,10 @@ fn bad_catalogue_names_file_section_and_key() {
             tools.replacen("flute_length_mm = 3.0", "flute_mm = 3.0", 1),
             vec!["tools.toml", "[ball-1mm]", "unknown key `flute_mm`"],
         ),
+        (
+            tools.replacen("\n[\"ball-0.5mm\"]\n", "\n[ball-0.5mm]\n", 1),
+            vec!["tools.toml", "[ball-0.5mm] (line", "write [\"ball-0.5mm\"]"],
+        ),
     ];
     for (text, want) in cases {
         std::fs::write(d.join("constraints/tools.toml"), text).unwrap();

@@ -180,8 +180,15 @@ pub fn run(job: &DesignJob) -> Result<String> {
         _ => None,
     };
     if job.library.is_none() {
-        crate::library::profile::LibraryProfile::load(&scene.library_profile)
-            .map_err(|e| e.within(ctx("library_profile")))?;
+        crate::library::profile::LibraryProfile::load(&scene.library_profile).map_err(|e| {
+            // The loader names its input as the command line does (`--profile`); here it is
+            // the scene's key.
+            if e.context == "--profile" {
+                Error::new(ctx("library_profile"), e.message)
+            } else {
+                e.within(ctx("library_profile"))
+            }
+        })?;
     }
     crate::fab::check_tile(&profile, scene.tile_mm).map_err(|e| {
         if e.context == "tile_mm" {

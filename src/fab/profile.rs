@@ -164,8 +164,20 @@ fn resolve_spec(spec: &str, rel_to: Option<&Path>, paths: &FabPaths) -> Result<P
             Some(dir) if p.is_relative() => dir.join(p),
             _ => p.to_path_buf(),
         };
+        if p.is_dir() {
+            return Err(Error::new(
+                spec,
+                format!(
+                    "{} is a directory; expected a profile file (.toml)",
+                    p.display()
+                ),
+            ));
+        }
         if !p.is_file() {
-            return Err(Error::new(spec, "no such profile file"));
+            return Err(Error::new(
+                spec,
+                format!("no such profile file ({})", p.display()),
+            ));
         }
         return Ok(p);
     }
