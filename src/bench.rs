@@ -173,6 +173,20 @@ fn random_geometry(r: &mut Rng) -> String {
     }
 }
 
+/// A random material whose glossy lobe is sharp (width log-uniform in 0.002–0.06 rad, the
+/// range the fast method sums over facets), alone or with a Lambertian lobe.
+fn random_sharp_material(r: &mut Rng) -> String {
+    let kd = r.range(0.05, 0.6);
+    let w = (r.range(0.002f64.ln(), 0.06f64.ln())).exp();
+    match r.below(5) {
+        0 => format!("ggx:alpha={w:.4}"),
+        1 => format!("beckmann:alpha={w:.4},f0={:.2}", r.range(0.04, 1.0)),
+        2 => format!("ggx:alpha={w:.4}+lambert:albedo={kd:.2}"),
+        3 => format!("ward:alpha={w:.4}+lambert:albedo={kd:.2}"),
+        _ => format!("blinn:n={:.0}+lambert:albedo={kd:.2}", 2.0 / (w * w) - 2.0),
+    }
+}
+
 /// A random material spec for the accuracy table.
 fn random_material(r: &mut Rng) -> String {
     let kd = r.range(0.05, 0.6);
@@ -198,10 +212,35 @@ fn random_material(r: &mut Rng) -> String {
     }
 }
 
-/// Accuracy table: relative RMS error of the fast evaluator against the exact one (s = 2) at the
-/// 490 default pairs, for `cases` random (geometry, material) pairs drawn with `seed`, the fast
-/// method's compact BVNDF built with `cfg`.
-pub fn accuracy(cases: usize, seed: u64, cfg: &BvndfConfig, progress: &Progress) -> Result<String> {
+/// What `bench accuracy` draws and how it checks.
+#[derive(Debug, Clone)]
+pub struct AccuracyOptions {
+    /// Draw sharp materials ([`random_sharp_material`]) instead of the usual ones.
+    pub sharp: bool,
+    /// View rays per cell side of the exact reference (2 is `forward`'s default).
+    pub exact_samples: usize,
+}
+
+impl Default for AccuracyOptions {
+    fn default() -> Self {
+        AccuracyOptions {
+            sharp: false,
+            exact_samples: 2,
+        }
+    }
+}
+
+/// Accuracy table: relative RMS error of the fast evaluator against the exact one (`s` view rays
+/// per cell side, `opt.exact_samples`) at the 490 default pairs, for `cases` random (geometry,
+/// material) pairs drawn with `seed` (sharp materials with `opt.sharp`), the fast method's
+/// compact BVNDF built with `cfg`.
+pub fn accuracy(
+    cases: usize,
+    seed: u64,
+    cfg: &BvndfConfig,
+    opt: &AccuracyOptions,
+    progress: &Progress,
+) -> Result<String> {
     let bar = progress.bar(cases as u64, "bench accuracy: cases (exact and fast)");
     let pairs = default_pairs(70);
     let dirs: Vec<DirPair> = pairs.iter().map(|p| p.dirs()).collect();
@@ -212,10 +251,14 @@ pub fn accuracy(cases: usize, seed: u64, cfg: &BvndfConfig, progress: &Progress)
     let mut build_s = 0.0;
     for c in 0..cases {
         let gs = random_geometry(&mut r);
-        let ms = random_material(&mut r);
+        let ms = if opt.sharp {
+            random_sharp_material(&mut r)
+        } else {
+            random_material(&mut r)
+        };
         let hf = geometry(&gs)?;
         let mat = parse_material(&ms)?;
-        let exact = ExactEvaluator::new(&hf, 2).fbar(&mat, &dirs);
+        let exact = ExactEvaluator::new(&hf, opt.exact_samples).fbar(&mat, &dirs);
         let t = Instant::now();
         let geo = CompactBvndf::build(&hf, cfg);
         build_s += t.elapsed().as_secs_f64();
@@ -237,6 +280,12 @@ pub fn accuracy(cases: usize, seed: u64, cfg: &BvndfConfig, progress: &Progress)
         bar.inc(1);
     }
     bar.finish();
+    let s = opt.exact_samples;
+    let sharp = if opt.sharp {
+        "; sharp materials: glossy widths 0.002–0.06 rad"
+    } else {
+        ""
+    };
     let summary = |name: &str, errs: &[f64]| {
         let mut sorted = errs.to_vec();
         sorted.sort_by(f64::total_cmp);
@@ -250,7 +299,7 @@ pub fn accuracy(cases: usize, seed: u64, cfg: &BvndfConfig, progress: &Progress)
         )
     };
     Ok(format!(
-        "Fast vs exact evaluator (exact: 2×2 view rays per cell from both ends): relative RMS error over \
+        "Fast vs exact evaluator (exact: {s}×{s} view rays per cell from both ends{sharp}): relative RMS error over \
          the 490 default pairs, {cases} random cases, seed {seed}; compact BVNDF: {} × {} grid, {} \
          rays per direction (+ {} seen rays), {} clusters, {} sub-lobes; its builds took {build_s:.1} s in all \
          ({:.3} s per geometry)\n\n\
@@ -297,5 +346,18 @@ mod tests {
         });
         assert_eq!(r.err().as_deref(), Some("run 2"));
         assert_eq!(runs, 2);
+    }
+
+    #[test]
+    fn sharp_random_materials_parse_and_go_to_the_facet_sum() {
+        let mut r = Rng::new(7);
+        for _ in 0..50 {
+            let spec = random_sharp_material(&mut r);
+            let m = parse_material(&spec).unwrap();
+            let w = m.min_lobe_width().unwrap();
+            assert!((0.0019..0.0601).contains(&w), "{spec}: width {w}");
+            let (_, sharp) = m.split_by_width(FACET_WIDTH);
+            assert_eq!(sharp.lobes.len(), 1, "{spec}");
+        }
     }
 }

@@ -431,6 +431,14 @@ enum BenchCmd {
         cases: usize,
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// Draw sharp materials (glossy widths 0.002–0.06 rad, which the fast method sums over
+        /// facets) instead of the usual ones (widths from 0.08).
+        #[arg(long)]
+        sharp: bool,
+        /// View rays per cell side of the exact reference (its noise on sharp lobes falls as
+        /// this grows; the cost grows with its square).
+        #[arg(long, default_value_t = 2, value_parser = in_range::<usize>(1, 64))]
+        exact_samples: usize,
         /// The compact BVNDF's build.
         #[command(flatten)]
         build: BvndfArgs,
@@ -724,9 +732,19 @@ fn main() -> ExitCode {
             )
             .and_then(|p| biscale::fab::bench::bench_fab(&p, reps.max(1)))
             .map(|t| print!("{t}")),
-            BenchCmd::Accuracy { cases, seed, build } => {
+            BenchCmd::Accuracy {
+                cases,
+                seed,
+                sharp,
+                exact_samples,
+                build,
+            } => {
                 let cfg = build.config();
-                biscale::bench::accuracy(cases.max(1), seed, &cfg, &Progress { quiet })
+                let opt = biscale::bench::AccuracyOptions {
+                    sharp,
+                    exact_samples,
+                };
+                biscale::bench::accuracy(cases.max(1), seed, &cfg, &opt, &Progress { quiet })
                     .map(|t| print!("{t}"))
             }
         },
