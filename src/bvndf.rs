@@ -444,11 +444,19 @@ impl CompactBvndf {
             cluster_area[k as usize] += a;
         }
         let shapes = cluster_shapes(&normals, &areas, &assign, &planar, cfg.sub_lobes);
-        let facets = FacetIndex::build(&normals, &areas, &assign, |k| !planar[k]);
         let mut resultants = vec![Vec3::default(); kc];
         for ((n, a), &k) in normals.iter().zip(&areas).zip(&assign) {
             resultants[k as usize] = resultants[k as usize] + *n * *a;
         }
+        // A cluster whose normals all but coincide comes as a delta (KAPPA_MAX), which a split
+        // table evaluates with the whole material, sharp lobes included: like a planar cluster,
+        // it stays out of the facet sum.
+        let delta = |k: usize| {
+            cluster_area[k] > 0.0
+                && kappa_from_resultant((resultants[k].norm() / cluster_area[k]).min(1.0))
+                    >= crate::vmf::KAPPA_MAX
+        };
+        let facets = FacetIndex::build(&normals, &areas, &assign, |k| !planar[k] && !delta(k));
         CompactBvndf {
             grid,
             clusters: kc,
@@ -499,7 +507,8 @@ impl CompactBvndf {
     /// jointly visible fraction of the facet's cluster (its tabulated visible projected area
     /// towards `wo` over its facets' projected area, `Σ_s (R_s·wo)+` over its sub-lobes): the
     /// facet sum of the exact evaluator, with each facet's visibility taken as its cluster's.
-    /// Planar clusters are not included: their lobe is a delta at their exact normal already.
+    /// Planar clusters (and curved ones whose normals all but coincide) are not included: their
+    /// lobe is a delta, which the table's material answers at its centre, sharp lobes included.
     pub fn sharp_fbar(&self, wi: Vec3, wo: Vec3, sharp: &Material, radius: f64) -> f64 {
         if wi.z <= 0.0 || wo.z <= 0.0 || sharp.lobes.is_empty() || self.facets.is_empty() {
             return 0.0;
