@@ -128,6 +128,31 @@ pub struct Compressed {
     pub passes: usize,
 }
 
+impl Compressed {
+    /// The same decomposition kept at a lower `energy`: its leading rows of `coords` (and
+    /// columns of `u`), the rank picked by the same rule as the decomposition's own. The
+    /// triplets are nested, so this equals a decomposition run at `energy` (bit for bit for
+    /// [`svd_gram`]). An `energy` at or above the kept one returns a copy.
+    pub fn truncated(&self, energy: f64) -> Compressed {
+        let rank = pick_rank(&self.singular, energy, self.total_energy)
+            .unwrap_or(self.rank)
+            .min(self.rank)
+            .max(1);
+        Compressed {
+            rank,
+            singular: self.singular.clone(),
+            total_energy: self.total_energy,
+            kept_energy: kept(&self.singular, rank, self.total_energy),
+            coords: self.coords.as_ref().subrows(0, rank).to_owned(),
+            u: self
+                .u
+                .as_ref()
+                .map(|u| u.as_ref().subcols(0, rank).to_owned()),
+            passes: self.passes,
+        }
+    }
+}
+
 fn err(ctx: &str, msg: impl Into<String>) -> Error {
     Error::new(format!("lowrank::{ctx}"), msg)
 }
@@ -1039,6 +1064,29 @@ mod tests {
             }
         }
         v
+    }
+
+    #[test]
+    fn a_truncated_decomposition_equals_one_run_at_the_lower_energy() {
+        let s: Vec<f64> = (0..12).map(|i| 10.0 * 0.5f64.powi(i)).collect();
+        let b = with_spectrum(300, 60, &s, 5);
+        let fine = svd_gram(&InMemory(b.clone()), 0.999999, 64, true).unwrap();
+        for energy in [0.9, 0.99, 0.999] {
+            let direct = svd_gram(&InMemory(b.clone()), energy, 64, true).unwrap();
+            let cut = fine.truncated(energy);
+            assert!(
+                cut.rank < fine.rank,
+                "{energy}: {} vs {}",
+                cut.rank,
+                fine.rank
+            );
+            assert_eq!(cut.rank, direct.rank);
+            assert_eq!(cut.kept_energy, direct.kept_energy);
+            assert_eq!(cut.coords, direct.coords, "{energy}");
+            assert_eq!(cut.u, direct.u, "{energy}");
+        }
+        // At or above the kept energy: the whole decomposition.
+        assert_eq!(fine.truncated(1.0).rank, fine.rank);
     }
 
     #[test]

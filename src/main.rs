@@ -360,10 +360,16 @@ enum LibraryCmd {
         #[arg(long, short = 'q')]
         quiet: bool,
     },
-    /// Fit a finished library's geometry weights to its light lobes (geometry/x-lobes.bsa),
-    /// for libraries built before the merge did; rewrites the manifest.
+    /// Fit a finished library's geometry weights to its light lobes (geometry/x-lobes.bsa) and
+    /// write the material solver's finer representatives (material/search-*.bsa), for libraries
+    /// built before the merge did; rewrites the manifest.
     Refit {
         dir: PathBuf,
+        /// Set the library profile's `compression.material_search_energy` first (e.g. 0.9999, as
+        /// the shipped profiles have it; the library's profile.toml is rewritten). Without it,
+        /// the library's own profile decides (no key: no finer selection).
+        #[arg(long)]
+        material_search_energy: Option<f64>,
         #[arg(long, short = 'q')]
         quiet: bool,
     },
@@ -689,9 +695,12 @@ fn main() -> ExitCode {
                 keep_chunks,
                 quiet,
             } => biscale::library::commands::merge(&dir, quiet, keep_chunks).map(|t| print!("{t}")),
-            LibraryCmd::Refit { dir, quiet } => {
-                biscale::library::commands::refit(&dir, quiet).map(|t| print!("{t}"))
-            }
+            LibraryCmd::Refit {
+                dir,
+                material_search_energy,
+                quiet,
+            } => biscale::library::commands::refit(&dir, material_search_energy, quiet)
+                .map(|t| print!("{t}")),
             LibraryCmd::Info { dir } => {
                 biscale::library::commands::info(&dir).map(|t| print!("{t}"))
             }

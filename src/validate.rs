@@ -492,7 +492,7 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
          error is then verified with the target's model (untimed)"
     };
     let mut out = format!(
-        "Library {} ('{}': {} geometries, {} materials; {} / {} representatives), {} cases, seed {}; \
+        "Library {} ('{}': {} geometries, {} materials; {} / {}{} representatives), {} cases, seed {}; \
          {protocol}; psi = {}, pool = {} geometries / {} materials, K = {}, {} starts.\n\n\
          | solver | cases | within 7 % | exact recovery | within 1 % | median time | 95th pct time | median error |\n\
          |---|---|---|---|---|---|---|---|\n",
@@ -502,6 +502,11 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
         nm,
         lib.manifest.geometry.representatives,
         lib.manifest.material.representatives,
+        lib.manifest
+            .material_search
+            .as_ref()
+            .map(|r| format!(" (the material solver's search: {})", r.representatives))
+            .unwrap_or_default(),
         job.cases,
         job.seed,
         opt.psi,

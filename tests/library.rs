@@ -45,10 +45,11 @@ fn manifest_without_build(dir: &Path) -> serde_json::Value {
     let mut v: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.join("manifest.json")).unwrap()).unwrap();
     v.as_object_mut().unwrap().remove("build");
-    for part in ["geometry", "material"] {
-        let o = v[part].as_object_mut().unwrap();
-        o.remove("svd_seconds");
-        o.remove("cx_seconds");
+    for part in ["geometry", "material", "material_search"] {
+        if let Some(o) = v.get_mut(part).and_then(|p| p.as_object_mut()) {
+            o.remove("svd_seconds");
+            o.remove("cx_seconds");
+        }
     }
     v
 }
@@ -501,10 +502,68 @@ fn light_lobe_weights_fit_the_probes_at_least_as_well_as_the_binned_fit_and_refi
     );
     // Refitting the finished library gives the same bytes.
     let before = std::fs::read(d.join("geometry/x-lobes.bsa")).unwrap();
-    biscale::library::commands::refit(&d, true).unwrap();
+    biscale::library::commands::refit(&d, None, true).unwrap();
     assert_eq!(
         std::fs::read(d.join("geometry/x-lobes.bsa")).unwrap(),
         before
     );
     assert!(Library::open(&d).unwrap().has("geometry/x-lobes.bsa"));
+}
+
+/// The material solver's finer representatives: written by the build when the profile asks
+/// (`compression.material_search_energy`), left out when it does not, and added to such a
+/// library by `library refit --material-search-energy`, which makes it the library the changed
+/// profile builds (the same files, the same manifest but for times). A bad energy is refused
+/// naming the key, before anything is written.
+#[test]
+fn the_material_search_selection_is_built_or_refitted_to_the_same_files() {
+    use biscale::library::commands::refit;
+    let (p, base) = tiny();
+    let e = p.compression.material_search_energy;
+    assert!(e.is_some(), "the tiny profile asks for the finer selection");
+    let with = TestDir::new("lib-search-with");
+    build_all(&p, &base, &with, &QUIET, false, false).unwrap();
+    let lib = Library::open(&with).unwrap();
+    let (coarse, fine) = (
+        &lib.manifest.material,
+        lib.manifest.material_search.as_ref(),
+    );
+    let fine = fine.unwrap();
+    assert!(fine.rank > coarse.rank && fine.representatives > coarse.representatives);
+    assert!(fine.total_rel_error < coarse.total_rel_error);
+    assert!(lib.has("material/search-x.bsa") && lib.has("material/search-representatives.bsa"));
+
+    let mut p0 = p.clone();
+    p0.compression.material_search_energy = None;
+    let without = TestDir::new("lib-search-without");
+    build_all(&p0, &base, &without, &QUIET, false, false).unwrap();
+    let lib0 = Library::open(&without).unwrap();
+    assert!(lib0.manifest.material_search.is_none());
+    assert!(!without.join("material/search-x.bsa").exists());
+    // The coarse selection does not depend on the finer one (the SVD is truncated, not rerun).
+    for f in [
+        "material/x.bsa",
+        "material/representatives.bsa",
+        "material/coords.bsa",
+    ] {
+        assert_eq!(
+            std::fs::read(with.join(f)).unwrap(),
+            std::fs::read(without.join(f)).unwrap(),
+            "{f}"
+        );
+    }
+    let bad = refit(&without, Some(0.5), true).unwrap_err().to_string();
+    assert!(bad.contains("compression.material_search_energy"), "{bad}");
+    assert!(Library::open(&without)
+        .unwrap()
+        .manifest
+        .material_search
+        .is_none());
+    refit(&without, e, true).unwrap();
+    assert_eq!(data_files(&without), data_files(&with));
+    assert_eq!(
+        manifest_without_build(&without),
+        manifest_without_build(&with)
+    );
+    Library::open(&without).unwrap().verify_all().unwrap();
 }

@@ -121,6 +121,14 @@ fn material_solver_recovers_the_material_of_a_library_combination() {
         };
         let r = biscale::solve::material::solve(&lib, &look, &hf, &hf_spec, Some(4), 0.0, &opt)
             .unwrap();
+        // The search went through the library's finer selection of representatives.
+        assert_eq!(
+            Some(r.stats.representatives),
+            lib.manifest
+                .material_search
+                .as_ref()
+                .map(|s| s.representatives)
+        );
         let best = &r.candidates[0];
         found += (best.material == Some(m)) as usize;
         // Whatever it picks is at least as good as the truth, which scores 0 at stage 2.
@@ -307,31 +315,53 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
 /// Material CX weights are fitted to unit-norm tables, so every material's own table is
 /// reconstructed from the representatives to a small *relative* error, rough materials included
 /// (before, the sharpest materials owned the energy and rough ones were reconstructed from
-/// almost nothing).
+/// almost nothing). The material solver's finer selection (`material/search-*.bsa`) does so
+/// with more representatives and a smaller error.
 #[test]
 fn material_cx_reconstructs_every_material_to_a_small_relative_error() {
     let lib = Library::open(&tiny_library()).unwrap();
     let t = lib.array("material/prefiltered.bsa").unwrap();
     let (t, len) = (t.f32s().unwrap(), lib.manifest.table_len);
-    let reps = lib.array("material/representatives.bsa").unwrap();
-    let x = lib.array("material/x.bsa").unwrap();
-    let (reps, x) = (reps.u32s().unwrap(), x.f32s().unwrap());
-    let c = reps.len();
-    let mut worst = 0.0f64;
-    for j in 0..lib.manifest.materials {
-        let (mut d, mut n) = (0.0f64, 0.0f64);
-        for i in 0..len {
-            let b = t[j * len + i] as f64;
-            let r: f64 = (0..c)
-                .map(|k| x[j * c + k] as f64 * t[reps[k] as usize * len + i] as f64)
-                .sum();
-            d += (b - r) * (b - r);
-            n += b * b;
+    // (representatives, worst and mean relative error) of one selection.
+    let errors = |prefix: &str| {
+        let reps = lib.array(&format!("{prefix}representatives.bsa")).unwrap();
+        let x = lib.array(&format!("{prefix}x.bsa")).unwrap();
+        let (reps, x) = (reps.u32s().unwrap(), x.f32s().unwrap());
+        let c = reps.len();
+        let (mut worst, mut sum) = (0.0f64, 0.0f64);
+        for j in 0..lib.manifest.materials {
+            let (mut d, mut n) = (0.0f64, 0.0f64);
+            for i in 0..len {
+                let b = t[j * len + i] as f64;
+                let r: f64 = (0..c)
+                    .map(|k| x[j * c + k] as f64 * t[reps[k] as usize * len + i] as f64)
+                    .sum();
+                d += (b - r) * (b - r);
+                n += b * b;
+            }
+            worst = worst.max((d / n).sqrt());
+            sum += (d / n).sqrt();
         }
-        worst = worst.max((d / n).sqrt());
-    }
-    eprintln!("worst relative reconstruction error {worst:.4} with {c} representatives");
+        (c, worst, sum / lib.manifest.materials as f64)
+    };
+    let (c, worst, mean) = errors("material/");
+    let (cs, worst_s, mean_s) = errors("material/search-");
+    eprintln!(
+        "relative reconstruction error: worst {worst:.4}, mean {mean:.4} with {c} representatives; \
+         the search selection's worst {worst_s:.4}, mean {mean_s:.4} with {cs}"
+    );
     assert!(worst < 0.1, "worst material reconstruction {worst}");
+    assert_eq!(
+        Some(cs),
+        lib.manifest
+            .material_search
+            .as_ref()
+            .map(|r| r.representatives)
+    );
+    assert!(
+        cs > c && mean_s < mean && worst_s < 0.1,
+        "{cs} {mean_s} {worst_s}"
+    );
 }
 
 /// The general solver's joint search scores every (geometry, material) pair through both

@@ -933,7 +933,12 @@ fn save_u32(
 }
 
 /// Compress one item matrix and pick its representatives; writes `<kind>/coords.bsa`,
-/// `<kind>/singular.bsa`, `<kind>/representatives.bsa` and `<kind>/x.bsa`.
+/// `<kind>/singular.bsa`, `<kind>/representatives.bsa` and `<kind>/x.bsa`. With
+/// `search_energy` (materials only: an in-core SVD), the SVD keeps that much energy once, the
+/// compression above is its truncation to the profile's energy (the same arrays as an SVD run
+/// at that energy), and a second selection of representatives on the finer coordinates is
+/// written as `<kind>/search-representatives.bsa` and `<kind>/search-x.bsa` (its report is the
+/// second value).
 ///
 /// With `normalise`, the SVD and the CX selection see every item's column scaled to unit norm,
 /// so the energy and CX thresholds bound each item's *relative* error rather than the error of
@@ -950,9 +955,10 @@ fn compress(
     prof: &LibraryProfile,
     gram: bool,
     normalise: bool,
+    search_energy: Option<f64>,
     files: &mut Vec<ArrayEntry>,
     stages: &Stages,
-) -> Result<CompressionReport> {
+) -> Result<(CompressionReport, Option<CompressionReport>)> {
     let c = &prof.compression;
     let raw = ItemMatrix::new(file);
     let norms = if normalise {
@@ -976,10 +982,16 @@ fn compress(
         b.cols()
     ));
     let t = Instant::now();
-    let comp = if gram {
-        svd_gram(&b, c.material_energy, 4096, false)?
+    let (comp, fine) = if gram {
+        match search_energy {
+            Some(e) => {
+                let fine = svd_gram(&b, e.max(c.material_energy), 4096, false)?;
+                (fine.truncated(c.material_energy), Some(fine))
+            }
+            None => (svd_gram(&b, c.material_energy, 4096, false)?, None),
+        }
     } else {
-        rsvd_streaming_with(
+        let comp = rsvd_streaming_with(
             &b,
             &RsvdConfig {
                 energy: c.geometry_energy,
@@ -992,32 +1004,16 @@ fn compress(
             },
             false,
             &|msg| stages.step(msg),
-        )?
+        )?;
+        (comp, None)
     };
     let svd_seconds = t.elapsed().as_secs_f64();
-    stages.stage(&format!("{kind} CX (rank {})", comp.rank));
-    let t = Instant::now();
-    let method = if c.cx_method == "leverage" {
-        CxMethod::Leverage { seed: prof.seed }
-    } else {
-        CxMethod::PivotedQr
-    };
-    let sel = cx(
-        comp.coords.as_ref(),
-        c.cx_error,
-        method,
-        comp.coords.nrows().max(1) * 4,
-    )?;
-    let cx_seconds = t.elapsed().as_secs_f64();
     let n = comp.coords.ncols();
-    let (mut coords, mut xw) = (comp.coords.clone(), sel.x.clone());
+    let mut coords = comp.coords.clone();
     if let Some(nrm) = &norms {
         for j in 0..n {
             for r in 0..coords.nrows() {
                 coords[(r, j)] *= nrm[j];
-            }
-            for (k, &ck) in sel.columns.iter().enumerate() {
-                xw[(k, j)] *= if nrm[ck] > 0.0 { nrm[j] / nrm[ck] } else { 0.0 };
             }
         }
     }
@@ -1038,18 +1034,74 @@ fn compress(
         &sv,
         files,
     )?;
+    stages.stage(&format!("{kind} CX (rank {})", comp.rank));
+    let mut report = select(dir, kind, "", &comp, norms.as_deref(), prof, files)?;
+    report.svd_seconds = svd_seconds;
+    let search = match &fine {
+        Some(fine) => {
+            stages.stage(&format!("{kind} search CX (rank {})", fine.rank));
+            Some(select(
+                dir,
+                kind,
+                "search-",
+                fine,
+                norms.as_deref(),
+                prof,
+                files,
+            )?)
+        }
+        None => None,
+    };
+    Ok((report, search))
+}
+
+/// Pick the representatives of one decomposition by CX and write
+/// `<kind>/<prefix>representatives.bsa` and `<kind>/<prefix>x.bsa` (the weights scaled back by
+/// the column `norms` the decomposition saw, see [`compress`]). The report's `svd_seconds` is 0.
+fn select(
+    dir: &Path,
+    kind: &str,
+    prefix: &str,
+    comp: &crate::lowrank::Compressed,
+    norms: Option<&[f64]>,
+    prof: &LibraryProfile,
+    files: &mut Vec<ArrayEntry>,
+) -> Result<CompressionReport> {
+    let c = &prof.compression;
+    let t = Instant::now();
+    let method = if c.cx_method == "leverage" {
+        CxMethod::Leverage { seed: prof.seed }
+    } else {
+        CxMethod::PivotedQr
+    };
+    let sel = cx(
+        comp.coords.as_ref(),
+        c.cx_error,
+        method,
+        comp.coords.nrows().max(1) * 4,
+    )?;
+    let cx_seconds = t.elapsed().as_secs_f64();
+    let n = comp.coords.ncols();
+    let mut xw = sel.x.clone();
+    if let Some(nrm) = norms {
+        for j in 0..n {
+            for (k, &ck) in sel.columns.iter().enumerate() {
+                xw[(k, j)] *= if nrm[ck] > 0.0 { nrm[j] / nrm[ck] } else { 0.0 };
+            }
+        }
+    }
     let cols: Vec<u32> = sel.columns.iter().map(|&j| j as u32).collect();
     save_u32(
         dir,
-        &format!("{kind}/representatives.bsa"),
-        &format!("{kind}-representatives"),
+        &format!("{kind}/{prefix}representatives.bsa"),
+        &format!("{kind}-{prefix}representatives"),
         &cols,
         files,
     )?;
     save_f32(
         dir,
-        &format!("{kind}/x.bsa"),
-        &format!("{kind}-x"),
+        &format!("{kind}/{prefix}x.bsa"),
+        &format!("{kind}-{prefix}x"),
         &[n, cols.len()],
         &mat_f32_rows(&xw),
         files,
@@ -1067,9 +1119,44 @@ fn compress(
         cx_rel_error: sel.rel_error,
         total_rel_error: total_rel,
         method: c.cx_method.clone(),
-        svd_seconds,
+        svd_seconds: 0.0,
         cx_seconds,
     })
+}
+
+/// Write the material solver's finer selection of representatives into the finished library
+/// `dir` (`material/search-*.bsa`, replacing earlier entries of `files`) at the profile's
+/// `compression.material_search_energy`: the material SVD is run again at that energy (seconds:
+/// an in-core SVD of the prefiltered tables). `None` when the profile asks for none.
+pub fn material_search_selection(
+    dir: &Path,
+    prof: &LibraryProfile,
+    files: &mut Vec<ArrayEntry>,
+    progress: &Progress,
+) -> Result<Option<CompressionReport>> {
+    let Some(e) = prof.compression.material_search_energy else {
+        return Ok(None);
+    };
+    let mfile = ArrayFile::open(&dir.join("material/prefiltered.bsa"), &Expect::default())?;
+    let raw = ItemMatrix::new(&mfile);
+    let norms = raw.column_norms()?;
+    let b = raw.scaled(
+        norms
+            .iter()
+            .map(|&v| if v > 0.0 { 1.0 / v } else { 0.0 })
+            .collect(),
+    );
+    let stages = progress.stages("refit");
+    stages.stage(&format!("material SVD ({} × {})", b.rows(), b.cols()));
+    let t = Instant::now();
+    let fine = svd_gram(&b, e.max(prof.compression.material_energy), 4096, false)?;
+    let svd_seconds = t.elapsed().as_secs_f64();
+    stages.stage(&format!("material search CX (rank {})", fine.rank));
+    files.retain(|f| !f.path.starts_with("material/search-"));
+    let mut report = select(dir, "material", "search-", &fine, Some(&norms), prof, files)?;
+    stages.finish();
+    report.svd_seconds = svd_seconds;
+    Ok(Some(report))
 }
 
 /// Peak resident memory of this process so far, in MiB (Linux; 0 elsewhere).
@@ -1208,21 +1295,32 @@ pub fn merge(
     times.colours = t.elapsed().as_secs_f64();
 
     let mfile = ArrayFile::open(&dir.join("material/prefiltered.bsa"), &Expect::default())?;
-    let material = compress(
-        dir, "material", &mfile, &prof, true, true, &mut files, &stages,
+    let (material, material_search) = compress(
+        dir,
+        "material",
+        &mfile,
+        &prof,
+        true,
+        true,
+        prof.compression.material_search_energy,
+        &mut files,
+        &stages,
     )?;
     let gfile = ArrayFile::open(&dir.join("geometry/gamma.bsa"), &Expect::default())?;
-    let geometry = compress(
-        dir, "geometry", &gfile, &prof, false, false, &mut files, &stages,
+    let (geometry, _) = compress(
+        dir, "geometry", &gfile, &prof, false, false, None, &mut files, &stages,
     )?;
     stages.finish();
-    times.compress =
-        material.svd_seconds + material.cx_seconds + geometry.svd_seconds + geometry.cx_seconds;
+    times.compress = material.svd_seconds
+        + material.cx_seconds
+        + material_search.as_ref().map_or(0.0, |r| r.cx_seconds)
+        + geometry.svd_seconds
+        + geometry.cx_seconds;
     times.lobe_fit = fit_lobe_weights(dir, &prof, &mats, progress, &mut files)?;
 
     write_items(dir, &geos, &mats, &mut files)?;
     times.peak_rss_mib = peak_rss_mib();
-    let manifest = Manifest {
+    let mut manifest = Manifest {
         format: "biscale-library".into(),
         version: MANIFEST_VERSION,
         tool_version: env!("CARGO_PKG_VERSION").into(),
@@ -1235,10 +1333,12 @@ pub fn merge(
         gamma_rows: rows,
         table_len: tlen,
         material,
+        material_search,
         geometry,
         files,
         build: times,
     };
+    manifest.sort_files();
     manifest.write(dir)?;
     if !keep_chunks {
         let _ = std::fs::remove_dir_all(dir.join("chunks"));

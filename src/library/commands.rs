@@ -96,18 +96,43 @@ pub fn merge(dir: &Path, quiet: bool, keep_chunks: bool) -> Result<String> {
 }
 
 /// Fit (again) the geometry weights of a finished library to its light lobes
-/// (`geometry/x-lobes.bsa`, [`super::lobefit`]): for libraries built before the merge fitted
-/// them. Rewrites the manifest.
-pub fn refit(dir: &Path, quiet: bool) -> Result<String> {
-    let lib = Library::open(dir)?;
+/// (`geometry/x-lobes.bsa`, [`super::lobefit`]) and write the material solver's finer
+/// representatives (`material/search-*.bsa`, [`super::build::material_search_selection`]): for
+/// libraries built before the merge wrote them. `material_search_energy` sets that key of the
+/// library's profile first (its `profile.toml` and the manifest's profile hash are rewritten:
+/// the library is then what the changed profile builds). Rewrites the manifest.
+pub fn refit(dir: &Path, material_search_energy: Option<f64>, quiet: bool) -> Result<String> {
+    let mut lib = Library::open(dir)?;
+    let progress = Progress { quiet };
+    if let Some(e) = material_search_energy {
+        let mut prof = lib.profile.clone();
+        prof.compression.material_search_energy = Some(e);
+        // Parsed again, so the key is checked as a profile's would be (and named so).
+        lib.profile = LibraryProfile::parse(&prof.canonical(), "--material-search-energy")?;
+    }
     let mut m = lib.manifest.clone();
     m.build.lobe_fit = super::build::fit_lobe_weights(
         dir,
         &lib.profile,
         &lib.material_items()?,
-        &Progress { quiet },
+        &progress,
         &mut m.files,
     )?;
+    m.material_search =
+        super::build::material_search_selection(dir, &lib.profile, &mut m.files, &progress)?;
+    if m.material_search.is_none() {
+        m.files.retain(|f| !f.path.starts_with("material/search-"));
+    }
+    // The profile, then the manifest naming its hash (two renames: a refit killed between them
+    // leaves a library that `Library::open` calls inconsistent).
+    if material_search_energy.is_some() {
+        crate::atomic_write::write_bytes(
+            &dir.join("profile.toml"),
+            lib.profile.canonical().as_bytes(),
+        )?;
+        m.profile_hash = lib.profile.hash();
+    }
+    m.sort_files();
     m.write(dir)?;
     Ok(summary(dir, &m))
 }
@@ -141,10 +166,14 @@ fn summary(dir: &Path, m: &Manifest) -> String {
         m.tool_version,
         bytes as f64 / 1e6
     );
-    for (name, n, rows, c) in [
-        ("geometry", m.geometries, m.gamma_rows, &m.geometry),
-        ("material", m.materials, m.table_len, &m.material),
-    ] {
+    let parts = [
+        Some(("geometry", m.geometries, m.gamma_rows, &m.geometry)),
+        Some(("material", m.materials, m.table_len, &m.material)),
+        m.material_search
+            .as_ref()
+            .map(|c| ("material (solver's search)", m.materials, m.table_len, c)),
+    ];
+    for (name, n, rows, c) in parts.into_iter().flatten() {
         s.push_str(&format!(
             "| {name} | {n} | {rows} | {} | {:.4} | {} | {} ({}) | {:.4} | {:.4} |\n",
             c.rank,

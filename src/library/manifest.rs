@@ -25,6 +25,10 @@ pub struct Manifest {
     /// Length of one material's prefiltered table.
     pub table_len: usize,
     pub material: CompressionReport,
+    /// The material solver's finer selection (`material/search-*.bsa`), when the profile asks
+    /// for one (`compression.material_search_energy`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub material_search: Option<CompressionReport>,
     pub geometry: CompressionReport,
     pub files: Vec<ArrayEntry>,
     /// Times and memory of the build (the only part that differs between identical builds).
@@ -166,6 +170,12 @@ impl ShardTimes {
 }
 
 impl Manifest {
+    /// List the files by path (so a library the merge wrote and one a refit completed list
+    /// them alike).
+    pub fn sort_files(&mut self) {
+        self.files.sort_by(|a, b| a.path.cmp(&b.path));
+    }
+
     pub fn write(&self, dir: &Path) -> Result<()> {
         let text = serde_json::to_string_pretty(self)
             .map_err(|e| Error::new("manifest.json", format!("cannot encode: {e}")))?;

@@ -4,6 +4,8 @@
 //! geometry, else built once from its heightfield) give, at every sample, a few vMF lobes; `fbar` of a material is
 //! then `Σ_c w_c F(κ_c, μ_c)` of its prefiltered table (Eq. 6). That is evaluated for the
 //! representative materials only; every material's value is representatives × CX weights. The
+//! representatives are the library's finer search selection (`material/search-*.bsa`) when it
+//! has one, else its CX representatives. The
 //! score adds the colour term of Eq. 13: `(1 - β) e² + β |λ̂ - λ|² / |λ̂|²` with `e` the relative
 //! error and `λ` the material's average colour under its best colour shift.
 
@@ -69,8 +71,15 @@ pub fn solve(
     let cfg = prefilter_config(&lib.profile);
     let tlen = lib.manifest.table_len;
     let tables = lib.array("material/prefiltered.bsa")?;
-    let reps = lib.array("material/representatives.bsa")?;
-    let xs = lib.array("material/x.bsa")?;
+    // The finer selection for this search when the library has one (the coarse set serves the
+    // joint search, whose cost grows with its square).
+    let prefix = if lib.has("material/search-x.bsa") {
+        "material/search-"
+    } else {
+        "material/"
+    };
+    let reps = lib.array(&format!("{prefix}representatives.bsa"))?;
+    let xs = lib.array(&format!("{prefix}x.bsa"))?;
     let colours = lib.array("material/colour.bsa")?;
     let shifts = lib.array("material/colour-shifts.bsa")?;
     let (tables, reps, xs, colours, shifts) = (
@@ -123,10 +132,11 @@ pub fn solve(
     stats.search_seconds = t0.elapsed().as_secs_f64();
     // Stage 2: each pooled material's own table.
     let t1 = Instant::now();
-    // The compressed search ranks sharp materials on rough surfaces poorly (14 representatives
-    // on `paper4`: originals past the 64th), so the pool is large (`auto_pool`) and narrowed
-    // first by the geometry solver's coarse passes (each ranks by the score at every `step`-th
-    // sample and keeps its best quarter), which makes it cheap.
+    // The compressed search ranks sharp materials on rough surfaces poorly (the 14 CX
+    // representatives of `paper4`: originals past the 64th, some past the 520th; the 21 of the
+    // finer search selection: one in 200 past the 520th), so the pool is large (`auto_pool`)
+    // and narrowed first by the geometry solver's coarse passes (each ranks by the score at
+    // every `step`-th sample and keeps its best quarter), which makes it cheap.
     let pool = smallest(&scores, opt.pool_for(items.len()));
     let pool = narrow(
         pool,
