@@ -142,6 +142,27 @@ fn bad_profiles_name_file_and_key() {
     assert_eq!((p.stepover_mm, p.base_thickness_mm), (Some(0.05), 6.0));
     assert_eq!(p.tool.unwrap().name, "ball-1mm");
     assert_eq!(p.files.len(), 2);
+    // A printer profile extending a mill profile: the mill's tool and stepover, inherited from
+    // before the machine changed, are dropped; set beside the printer, they are an error.
+    let p = load_text(
+        &d,
+        "to-sla.toml",
+        "extends = \"cnc-ball1-aluminium\"\nmachine = \"sla-resin\"\nmaterial = \"sla-resin-standard\"\n",
+    )
+    .unwrap();
+    assert!(p.tool.is_none() && p.stepover_mm.is_none());
+    // The other keys are inherited as they were.
+    assert_eq!(p.base_thickness_mm, 3.0);
+    let e = load_text(
+        &d,
+        "to-sla-tool.toml",
+        "extends = \"cnc-ball1-aluminium\"\nmachine = \"sla-resin\"\nmaterial = \"sla-resin-standard\"\ntool = \"ball-1mm\"\n",
+    )
+    .unwrap_err();
+    assert!(
+        e.contains("to-sla-tool.toml") && e.contains("`tool`"),
+        "{e}"
+    );
     // a bad override is reported in the user's file.
     let e = load_text(
         &d,
@@ -509,6 +530,26 @@ fn scale_window_and_check() {
             < 1e-9
     );
     assert!((c.area_cm2 - 25.0).abs() < 1e-12);
+    // The cost is of the tile made: whole samples, rounded down (21 mm over 128 samples: 304
+    // samples of 0.1640625 mm in 50 mm, 49.875 mm), as the export makes it.
+    assert_eq!(hf.width(), 128);
+    let c = check_detail(
+        &hf,
+        &p,
+        &CheckOptions {
+            patch_mm: Some(21.0),
+            ..far
+        },
+    )
+    .unwrap()
+    .cost;
+    let made = 304.0 * 21.0 / 128.0;
+    assert!((c.tile_x_mm - made).abs() < 1e-12 && (c.tile_y_mm - made).abs() < 1e-12);
+    assert!(
+        (c.area_cm2 - made * made / 100.0).abs() < 1e-12,
+        "{}",
+        c.area_cm2
+    );
     // printers have a model too
     let sla = load_profile("sla-50um", &paths()).unwrap();
     let r = check_detail(

@@ -1,9 +1,9 @@
 //! The solid of one tile: the periodic heightfield repeated over the requested tile, side walls
 //! and a flat base, as one indexed triangle mesh in millimetres, and its checks.
 //!
-//! Tiling: the tile is `nx × ny` cells of the detail's sample spacing, `nx = round(tile_x /
-//! cell)` (at least 1), so its size is rounded to a whole sample (the size actually made is
-//! reported); the heightfield repeats periodically from the corner `(0, 0)`, and a last period
+//! Tiling: the tile is `nx × ny` cells of the detail's sample spacing, `nx = floor(tile_x /
+//! cell)` ([`whole_samples`]; a tile under one sample is refused), so its size is rounded down to
+//! a whole sample (the size actually made is reported, and costed); the heightfield repeats periodically from the corner `(0, 0)`, and a last period
 //! that does not fit is cropped. Heights: the lowest design point sits at `base_thickness_mm`
 //! above the bottom face `z = 0`.
 //!
@@ -31,6 +31,25 @@ pub struct TileGrid {
     pub z: Vec<f64>,
 }
 
+/// Samples of `cell` mm in a tile side of `t` mm, whole, rounded down (by a hair's tolerance, so
+/// that 50 mm of 0.5 mm samples is 100 of them): the part made is never larger than asked for,
+/// so a tile that fits the machine's travel still fits.
+pub fn whole_samples(t: f64, cell: f64) -> f64 {
+    (t / cell * (1.0 + 1e-9)).floor()
+}
+
+/// The tile side made of a `t` mm request for `hf` at patch size `patch_mm`: whole samples
+/// ([`whole_samples`]), or `t` itself when it is less than one sample (which the export refuses).
+pub fn made_tile_mm(hf: &Heightfield, patch_mm: f64, t: f64) -> f64 {
+    let cell = patch_mm / hf.width() as f64;
+    let k = whole_samples(t, cell);
+    if k >= 1.0 {
+        k * cell
+    } else {
+        t
+    }
+}
+
 impl TileGrid {
     /// `hf` at patch size `patch_mm`, tiled over `tile_x_mm × tile_y_mm`, on a base of `base_mm`.
     pub fn new(
@@ -48,10 +67,7 @@ impl TileGrid {
                     format!("must be a positive number of mm, got {t}"),
                 ));
             }
-            // Whole samples, rounded down (by a hair's tolerance, so that 50 mm of 0.5 mm
-            // samples is 100 of them): the part made is never larger than asked for, so a
-            // tile that fits the machine's travel still fits.
-            let k = (t / cell * (1.0 + 1e-9)).floor();
+            let k = whole_samples(t, cell);
             if k < 1.0 {
                 return Err(Error::new(
                     key,

@@ -223,7 +223,13 @@ pub fn check_detail(hf: &Heightfield, profile: &Profile, opts: &CheckOptions) ->
             );
         }
     }
-    let cost = cost::tile_cost(profile, &sim.made_fine, tx, ty);
+    // The cost of the tile made (whole samples, as the export makes it), not of the request.
+    let cost = cost::tile_cost(
+        profile,
+        &sim.made_fine,
+        mesh::made_tile_mm(hf, patch_mm, tx),
+        mesh::made_tile_mm(hf, patch_mm, ty),
+    );
     Ok(FabReport {
         detail: hf.name.clone(),
         profile: profile.name.clone(),

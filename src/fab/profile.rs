@@ -307,6 +307,19 @@ fn build(
     .map_err(|e| in_key("machine", e))?
     .clone();
     let is_mill = matches!(machine, Machine::Mill(_));
+    // A mill-only key that a profile up the chain set before a profile further down changed the
+    // machine to a printer belongs to the machine it replaced: it is dropped, not an error (a
+    // profile cannot unset a key it inherits). Set in the same file as the printer, or below
+    // it, it is the user's mistake and stays an error.
+    let depth = |k: &str| chain.iter().position(|c| *c == file_of(k));
+    let stale = |k: &str| !is_mill && depth(k) > depth("machine");
+    let mut r = r;
+    if stale("tool") {
+        r.tool = None;
+    }
+    if stale("stepover_mm") {
+        r.stepover_mm = None;
+    }
     let tool = match (&r.tool, is_mill) {
         (Some(t), true) => Some(
             lookup(&cat.tools, "tool", t, &cat.dir.join("tools.toml"))
