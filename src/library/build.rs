@@ -584,6 +584,16 @@ impl<'a> ItemMatrix<'a> {
         self.scale = Some(scale);
         self
     }
+
+    /// Every column scaled to unit norm (an all-zero column stays zero), and the norms.
+    pub fn unit_columns(self) -> Result<(Self, Vec<f64>)> {
+        let norms = self.column_norms()?;
+        let inv = norms
+            .iter()
+            .map(|&v| if v > 0.0 { 1.0 / v } else { 0.0 })
+            .collect();
+        Ok((self.scaled(inv), norms))
+    }
 }
 
 /// An element type the library matrices are read into: converted from the stored half or
@@ -961,19 +971,12 @@ fn compress(
 ) -> Result<(CompressionReport, Option<CompressionReport>)> {
     let c = &prof.compression;
     let raw = ItemMatrix::new(file);
-    let norms = if normalise {
+    let (b, norms) = if normalise {
         stages.stage(&format!("{kind} column norms"));
-        Some(raw.column_norms()?)
+        let (b, n) = raw.unit_columns()?;
+        (b, Some(n))
     } else {
-        None
-    };
-    let b = match &norms {
-        Some(n) => raw.scaled(
-            n.iter()
-                .map(|&v| if v > 0.0 { 1.0 / v } else { 0.0 })
-                .collect(),
-        ),
-        None => raw,
+        (raw, None)
     };
     stages.stage(&format!(
         "{kind} {} ({} × {})",
@@ -1138,14 +1141,7 @@ pub fn material_search_selection(
         return Ok(None);
     };
     let mfile = ArrayFile::open(&dir.join("material/prefiltered.bsa"), &Expect::default())?;
-    let raw = ItemMatrix::new(&mfile);
-    let norms = raw.column_norms()?;
-    let b = raw.scaled(
-        norms
-            .iter()
-            .map(|&v| if v > 0.0 { 1.0 / v } else { 0.0 })
-            .collect(),
-    );
+    let (b, norms) = ItemMatrix::new(&mfile).unit_columns()?;
     let stages = progress.stages("refit");
     stages.stage(&format!("material SVD ({} × {})", b.rows(), b.cols()));
     let t = Instant::now();
