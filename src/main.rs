@@ -168,7 +168,7 @@ enum Cmd {
         /// Candidates returned.
         #[arg(long, short = 'k', default_value_t = 5, value_parser = in_range::<usize>(1, 1000))]
         k: usize,
-        /// Items re-ranked with their own library data [default: geometries one per 20 (256 to 4096), materials one per 2 (64 to 2048)]
+        /// Items re-ranked with their own library data [default: geometries one per 20 (256 to 4096), materials one per 4 (64 to 1024)]
         #[arg(long)]
         pool: Option<usize>,
         /// Geometry solver: rank the library by the representatives' light lobes only, not also
@@ -236,7 +236,7 @@ enum Cmd {
         seed: u64,
         #[arg(long, default_value_t = 1, value_parser = in_range::<usize>(1, 360))]
         psi: usize,
-        /// Items re-ranked with their own library data [default: geometries one per 20 (256 to 4096), materials one per 2 (64 to 2048)]
+        /// Items re-ranked with their own library data [default: geometries one per 20 (256 to 4096), materials one per 4 (64 to 1024)]
         #[arg(long)]
         pool: Option<usize>,
         /// Geometry solver: rank the library by the representatives' light lobes only, not also
@@ -328,7 +328,7 @@ enum FinalArg {
 enum LibraryCmd {
     /// Build a library from a profile (profiles/library/<name>.toml or a path), whole or one shard.
     Build {
-        /// Profile name (a file of profiles/library/: tiny, default, paper16, paper4, paper) or
+        /// Profile name (a file of profiles/library/: tiny, default, paper16, paper4, paper-materials, paper) or
         /// path to a profile TOML.
         #[arg(long, default_value = "default")]
         profile: String,
@@ -365,7 +365,7 @@ enum LibraryCmd {
     /// built before the merge did; rewrites the manifest.
     Refit {
         dir: PathBuf,
-        /// Set the library profile's `compression.material_search_energy` first (e.g. 0.9999, as
+        /// Set the library profile's `compression.material_search_energy` first (e.g. 0.99999, as
         /// the shipped profiles have it; the library's profile.toml is rewritten). Without it,
         /// the library's own profile decides (no key: no finer selection).
         #[arg(long)]

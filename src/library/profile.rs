@@ -129,7 +129,7 @@ pub struct CompressionSection {
     pub material_energy: f64,
     /// Energy kept by a second, finer selection of material representatives that only the
     /// material solver's search reads (`material/search-*.bsa`); absent: none, and the material
-    /// solver searches through the representatives above. The shipped profiles keep 0.9999:
+    /// solver searches through the representatives above. The shipped profiles keep 0.99999:
     /// at 0.999 the paper's 14 representatives rank sharp materials on rough surfaces poorly
     /// (docs/solvers.md), while the joint search's cost grows with the square of the
     /// representatives it combines, so it keeps the coarser set.
@@ -568,7 +568,14 @@ mod tests {
 
     #[test]
     fn shipped_profiles_load() {
-        for n in ["tiny", "default", "paper"] {
+        for n in [
+            "tiny",
+            "default",
+            "paper16",
+            "paper4",
+            "paper-materials",
+            "paper",
+        ] {
             let (p, _) = LibraryProfile::load(n).unwrap();
             assert_eq!(p.name, n);
             assert!(p.geometry_count() > 0);
@@ -579,6 +586,11 @@ mod tests {
             "{}",
             paper.geometry_count()
         );
+        // `paper-materials` has the paper's material library, draw for draw.
+        let (pm, _) = LibraryProfile::load("paper-materials").unwrap();
+        assert_eq!(pm.material, paper.material);
+        assert_eq!(pm.compression, paper.compression);
+        assert_eq!(pm.geometry.family.len(), paper.geometry.family.len());
     }
 
     #[test]
