@@ -3,8 +3,8 @@
 //!
 //! Tiling: the tile is `nx × ny` cells of the detail's sample spacing, `nx = floor(tile_x /
 //! cell)` ([`whole_samples`]; a tile under one sample is refused), so its size is rounded down to
-//! a whole sample (the size actually made is reported, and costed); the heightfield repeats periodically from the corner `(0, 0)`, and a last period
-//! that does not fit is cropped. Heights: the lowest design point sits at `base_thickness_mm`
+//! a whole sample (the size actually made is reported, and costed); the heightfield repeats
+//! periodically from the corner `(0, 0)`, and a last period that does not fit is cropped. Heights: the lowest design point sits at `base_thickness_mm`
 //! above the bottom face `z = 0`.
 //!
 //! Topology: the top surface (full resolution or [`super::decimate`]d), one wall quad (two
