@@ -5,8 +5,9 @@
 //! then `Σ_c w_c F(κ_c, μ_c)` of its prefiltered table (Eq. 6). That is evaluated for the
 //! representative materials only; every material's value is representatives × CX weights. The
 //! representatives are the library's finer search selection (`material/search-*.bsa`) when it
-//! has one, else its CX representatives. The score adds the colour term of Eq. 13: `(1 - β) e² + β |λ̂ - λ|² / |λ̂|²` with `e` the relative
-//! error and `λ` the material's average colour under its best colour shift.
+//! has one, else its CX representatives. The score adds the colour term of Eq. 13:
+//! `(1 - β) e² + β |λ̂ - λ|² / |λ̂|²` with `e` the relative error and `λ` the material's average
+//! colour under its best colour shift.
 
 use super::geometry::{narrow, COARSE_KEEP};
 use super::{
