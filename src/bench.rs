@@ -9,6 +9,7 @@ use crate::frame::DirPair;
 use crate::generators::parse_generator;
 use crate::heightfield::Heightfield;
 use crate::library::progress::Progress;
+use crate::lightlobes::LightLobes;
 use crate::material::parse_material;
 use crate::pairs::default_pairs;
 use crate::prefilter::{PrefilterConfig, Prefiltered};
@@ -68,17 +69,24 @@ pub fn relative_rms(got: &[f64], want: &[f64]) -> f64 {
 }
 
 /// Speed table: compact BVNDF build of 128² geometries, prefiltered material build, and one
-/// evaluation of the 490 default pairs by each method.
+/// evaluation of the 490 default pairs by each method; also the compact BVNDF at the 7 lights
+/// only (the `default` library's light lobes), its evaluation of the same pairs (all lit from
+/// those lights) and its error against the exact method beside `forward`'s default build's.
 pub fn speed(reps: usize, progress: &Progress) -> Result<String> {
     let threads = rayon::current_num_threads();
     let bar = progress.bar(9, "bench speed: 5 surfaces, then 4 materials");
     let dirs = default_dirs();
     let mut out = format!(
         "Forward model speed ({threads} threads; median of {reps}; 490 pairs = 7 lights × 70 views)\n\n\
-         | geometry (128²) | BVNDF build | BVNDF size | fast 490 pairs | fast, one vMF per cluster | BVNDF build, `forward`'s default | fast 490 pairs, `forward`'s default | exact 490 pairs (s=2) |\n|---|---|---|---|---|---|---|---|\n"
+         | geometry (128²) | BVNDF build | BVNDF size | fast 490 pairs | fast, one vMF per cluster | BVNDF build, `forward`'s default | fast 490 pairs, `forward`'s default | exact 490 pairs (s=2) | light lobes build | light lobes size | light lobes, 490 pairs | error: light lobes / `forward`'s default |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     );
     let mat = parse_material("ggx:alpha=0.2+lambert:albedo=0.3")?;
     let pre = Prefiltered::build(&mat, &PrefilterConfig::default());
+    // The compact BVNDF at the 7 lights only, as the `default` library builds and stores it
+    // (its view grid, rays and clusters): the 490 pairs are lit from those lights.
+    let (lp, _) = crate::library::profile::LibraryProfile::load("default")?;
+    let layout = crate::library::build::gamma_layout(&lp);
+    let (rays, clusters) = (lp.geometry.rays, lp.geometry.lobe_clusters);
     for spec in ["bumps", "vgroove", "fbm", "bricks", "weave"] {
         let hf = geometry(spec)?;
         let cfg = BvndfConfig::default();
@@ -91,18 +99,26 @@ pub fn speed(reps: usize, progress: &Progress) -> Result<String> {
         let (tw, fwd) = time(reps.min(3), || {
             CompactBvndf::build(&hf, &BvndfConfig::forward())
         });
-        let (tfw, _) = time(reps.max(20), || crate::fast::fbar(&fwd, &pre, &dirs));
+        let (tfw, vfw) = time(reps.max(20), || crate::fast::fbar(&fwd, &pre, &dirs));
         let ev = ExactEvaluator::new(&hf, 2);
-        let (te, _) = time(1, || ev.fbar(&mat, &dirs));
+        let (te, exact) = time(1, || ev.fbar(&mat, &dirs));
+        let (tl, lobes) = time(reps, || LightLobes::build(&layout, &hf, rays, clusters));
+        let (tlf, vl) = time(reps.max(20), || crate::fast::fbar(&lobes, &pre, &dirs));
         out.push_str(&format!(
-            "| {spec} | {:.1} ms | {:.2} MB | {:.3} ms | {:.3} ms | {:.1} ms | {:.3} ms | {:.2} s |\n",
+            "| {spec} | {:.1} ms | {:.2} MB | {:.3} ms | {:.3} ms | {:.1} ms | {:.3} ms | {:.2} s \
+             | {:.1} ms | {:.2} MB | {:.3} ms | {:.2} % / {:.2} % |\n",
             tb * 1e3,
             geo.bytes() as f64 / 1e6,
             tf * 1e3,
             tc * 1e3,
             tw * 1e3,
             tfw * 1e3,
-            te
+            te,
+            tl * 1e3,
+            lobes.bytes() as f64 / 1e6,
+            tlf * 1e3,
+            100.0 * relative_rms(&vl, &exact),
+            100.0 * relative_rms(&vfw, &exact),
         ));
         bar.inc(1);
     }
