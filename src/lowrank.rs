@@ -12,7 +12,9 @@
 //!   iterations, Halko, Martinsson & Tropp 2011, Alg. 4.4, streaming over column chunks so memory
 //!   is `O((m + n) l)` for a sketch of width `l`. Its products with `B` run in single precision
 //!   (`B` is stored in half or single precision; twice the rate of double), everything else
-//!   (orthonormalisation, the small SVD) in double.
+//!   (orthonormalisation, the small SVD) in double. With a *pilot* (`RsvdConfig::pilot`), the
+//!   basis is found on evenly spaced columns only and every column is projected on it in one
+//!   more pass: one pass over a matrix larger than memory instead of `2 + 2 power_iters`.
 //! - [`cx`]: representative columns `A ~ A[:, cols] X`, by column-pivoted QR (deterministic,
 //!   greedy) or by leverage-score sampling (Drineas, Mahoney & Muthukrishnan 2008).
 //!
@@ -126,6 +128,10 @@ pub struct Compressed {
     pub u: Option<Mat<f64>>,
     /// Full passes made over `B` (each reads every entry once).
     pub passes: usize,
+    /// Columns of the pilot the basis was found on (0: none, the basis is `B`'s own).
+    pub pilot_columns: usize,
+    /// Passes made over the pilot's columns (each reads `pilot_columns` columns of `B`).
+    pub pilot_passes: usize,
 }
 
 impl Compressed {
@@ -149,6 +155,8 @@ impl Compressed {
                 .as_ref()
                 .map(|u| u.as_ref().subcols(0, rank).to_owned()),
             passes: self.passes,
+            pilot_columns: self.pilot_columns,
+            pilot_passes: self.pilot_passes,
         }
     }
 }
@@ -515,6 +523,8 @@ pub fn svd_gram(
         coords,
         u,
         passes: 1 + want_u as usize,
+        pilot_columns: 0,
+        pilot_passes: 0,
     })
 }
 
@@ -536,6 +546,14 @@ pub struct RsvdConfig {
     pub initial_rank: usize,
     /// Seed of the Gaussian test matrix (stream `k` for chunk `k`).
     pub seed: u64,
+    /// Columns of the pilot (0, or at least the number of columns: none). With a pilot the
+    /// randomized SVD above runs on `pilot` evenly spaced columns of `B` (column `j n / pilot`
+    /// for `j < pilot`); then one pass projects every column of `B` on the pilot's whole
+    /// sketch basis (`l` vectors: the rank the pilot needs plus the oversampling, a margin for
+    /// the columns it did not see), and the rank is picked from the projection's singular
+    /// values against `||B||_F^2` (so `kept_energy` is exact for the whole matrix). Where that
+    /// basis cannot keep `energy` of the whole matrix, the randomized SVD runs on all of `B`.
+    pub pilot: usize,
 }
 
 /// `B X` (`m × l`) and `||B||_F^2`: chunks of columns in order, row tiles of each chunk in
@@ -590,14 +608,14 @@ fn times_right(
     Ok((y, total))
 }
 
-/// `B^T Q` (`n × l`): chunks of columns in parallel, row tiles of each chunk in order, in
-/// single precision as [`times_right`].
+/// `B^T Q` (`n × l`) and `||B||_F^2`: chunks of columns in parallel, row tiles of each chunk in
+/// order, in single precision as [`times_right`].
 fn times_left_t(
     ctx: &str,
     b: &dyn BlockSource,
     q: MatRef<'_, f64>,
     chunk: usize,
-) -> Result<Mat<f64>> {
+) -> Result<(Mat<f64>, f64)> {
     let (m, n) = (b.rows(), b.cols());
     let l = q.ncols();
     let q = to_f32(q);
@@ -605,13 +623,15 @@ fn times_left_t(
     let row_tiles = ranges(m, tile_rows(m));
     let parts = chunks
         .par_iter()
-        .map(|cols| -> Result<Mat<f32>> {
+        .map(|cols| -> Result<(Mat<f32>, f64)> {
             // Threads take runs of consecutive chunks: the next one is likely this thread's.
             b.prefetch(cols.clone());
             b.prefetch(cols.end..(cols.end + chunk).min(n));
             let mut z = Mat::zeros(cols.len(), l);
+            let mut ss = 0.0;
             for rows in &row_tiles {
-                let (t, _) = read_tile_f32(ctx, b, rows.clone(), cols.clone())?;
+                let (t, s) = read_tile_f32(ctx, b, rows.clone(), cols.clone())?;
+                ss += s;
                 mm32(
                     z.as_mut(),
                     Accum::Add,
@@ -619,16 +639,18 @@ fn times_left_t(
                     q.subrows(rows.start, rows.len()),
                 );
             }
-            Ok(z)
+            Ok((z, ss))
         })
         .collect::<Result<Vec<_>>>()?;
     let mut z = Mat::<f64>::zeros(n, l);
-    for (p, cols) in parts.iter().zip(&chunks) {
+    let mut total = 0.0;
+    for ((p, ss), cols) in parts.iter().zip(&chunks) {
         z.as_mut()
             .subrows_mut(cols.start, cols.len())
             .copy_from(to_f64(p.as_ref()));
+        total += ss;
     }
-    Ok(z)
+    Ok((z, total))
 }
 
 /// Randomized SVD with subspace iterations (Halko et al. 2011, Alg. 4.4), streaming over column
@@ -639,6 +661,7 @@ fn times_left_t(
 /// `l = min(initial_rank, max_rank) + oversample` (`initial_rank` 0 means 64); when the energy needs more than `l - oversample`
 /// values it doubles (restarting) until `max_rank`, after which `max_rank` is kept and
 /// `kept_energy` says honestly how much that is. Each attempt makes `2 + 2 power_iters` passes.
+/// With `cfg.pilot`, those passes read the pilot's columns only, and one more pass reads `B`.
 pub fn rsvd_streaming(b: &dyn BlockSource, cfg: &RsvdConfig, want_u: bool) -> Result<Compressed> {
     rsvd_streaming_with(b, cfg, want_u, &|_| {})
 }
@@ -652,6 +675,26 @@ pub fn rsvd_streaming_with(
     want_u: bool,
     on_pass: &dyn Fn(&str),
 ) -> Result<Compressed> {
+    let basis = if want_u { Basis::Rank } else { Basis::None };
+    rsvd_basis(b, cfg, basis, on_pass)
+}
+
+/// Which left singular vectors [`rsvd_basis`] returns in `Compressed::u`.
+#[derive(Clone, Copy, PartialEq)]
+enum Basis {
+    None,
+    /// The `rank` kept.
+    Rank,
+    /// All of the sketch's `l` (a pilot's basis: the columns past the rank are its margin).
+    Sketch,
+}
+
+fn rsvd_basis(
+    b: &dyn BlockSource,
+    cfg: &RsvdConfig,
+    basis: Basis,
+    on_pass: &dyn Fn(&str),
+) -> Result<Compressed> {
     const CTX: &str = "rsvd_streaming";
     let (m, n) = check_shape(CTX, b)?;
     check_energy(CTX, cfg.energy)?;
@@ -663,6 +706,9 @@ pub fn rsvd_streaming_with(
                 cfg.chunk, cfg.max_rank
             ),
         ));
+    }
+    if cfg.pilot > 0 && cfg.pilot < n {
+        return rsvd_pilot(b, cfg, basis != Basis::None, on_pass);
     }
     let full = m.min(n);
     let kmax = cfg.max_rank.min(full);
@@ -708,13 +754,13 @@ pub fn rsvd_streaming_with(
         }
         let mut q = orthonormalize(y);
         for _ in 0..cfg.power_iters {
-            let z = orthonormalize(times_left_t(CTX, b, q.as_ref(), cfg.chunk)?);
+            let z = orthonormalize(times_left_t(CTX, b, q.as_ref(), cfg.chunk)?.0);
             tick();
             q = orthonormalize(times_right(CTX, b, z.as_ref(), cfg.chunk)?.0);
             tick();
             passes += 2;
         }
-        let ct = times_left_t(CTX, b, q.as_ref(), cfg.chunk)?; // n × l = C^T
+        let ct = times_left_t(CTX, b, q.as_ref(), cfg.chunk)?.0; // n × l = C^T
         passes += 1;
         tick();
         // C^T = W S Uhat^T, so C = Uhat S W^T: right singular vectors of B ~ W, left ~ Q Uhat.
@@ -731,13 +777,18 @@ pub fn rsvd_streaming_with(
         };
         fix_signs(w.as_mut(), Some(uhat.as_mut()));
         let coords = coords_of(&s, w.as_ref(), rank);
-        let u = want_u.then(|| {
-            let mut u = Mat::zeros(m, rank);
+        let width = match basis {
+            Basis::None => 0,
+            Basis::Rank => rank,
+            Basis::Sketch => uhat.ncols(),
+        };
+        let u = (width > 0).then(|| {
+            let mut u = Mat::zeros(m, width);
             mm(
                 u.as_mut(),
                 Accum::Replace,
                 q.as_ref(),
-                uhat.as_ref().subcols(0, rank),
+                uhat.as_ref().subcols(0, width),
             );
             u
         });
@@ -750,8 +801,162 @@ pub fn rsvd_streaming_with(
             coords,
             u,
             passes,
+            pilot_columns: 0,
+            pilot_passes: 0,
         });
     }
+}
+
+/// Some columns of a matrix, in order: `B[:, cols]`.
+struct Columns<'a> {
+    b: &'a dyn BlockSource,
+    cols: Vec<usize>,
+}
+
+impl Columns<'_> {
+    /// Read the view's columns `cols` one source column at a time into `out`'s columns.
+    fn read_each<T>(
+        &self,
+        cols: Range<usize>,
+        mut out: MatMut<'_, T>,
+        mut read: impl FnMut(Range<usize>, MatMut<'_, T>) -> Result<()>,
+    ) -> Result<()> {
+        if cols.end > self.cols.len() || out.ncols() != cols.len() {
+            return Err(err(
+                "Columns::read_block",
+                format!(
+                    "columns {cols:?} into a buffer of {} columns: expected columns inside the \
+                     view's {} matching the buffer",
+                    out.ncols(),
+                    self.cols.len()
+                ),
+            ));
+        }
+        for (o, j) in cols.enumerate() {
+            let c = self.cols[j];
+            read(c..c + 1, out.rb_mut().subcols_mut(o, 1))?;
+        }
+        Ok(())
+    }
+}
+
+impl BlockSource for Columns<'_> {
+    fn rows(&self) -> usize {
+        self.b.rows()
+    }
+    fn cols(&self) -> usize {
+        self.cols.len()
+    }
+    fn read_block(
+        &self,
+        rows: Range<usize>,
+        cols: Range<usize>,
+        out: MatMut<'_, f64>,
+    ) -> Result<()> {
+        self.read_each(cols, out, |c, o| self.b.read_block(rows.clone(), c, o))
+    }
+    fn read_block_f32(
+        &self,
+        rows: Range<usize>,
+        cols: Range<usize>,
+        out: MatMut<'_, f32>,
+    ) -> Result<()> {
+        self.read_each(cols, out, |c, o| self.b.read_block_f32(rows.clone(), c, o))
+    }
+    fn prefetch(&self, cols: Range<usize>) {
+        for &c in self.cols.get(cols).unwrap_or(&[]) {
+            self.b.prefetch(c..c + 1);
+        }
+    }
+}
+
+/// [`rsvd_streaming_with`] with a pilot (`0 < cfg.pilot < n`, see [`RsvdConfig::pilot`]): the
+/// basis from the pilot's columns, then one pass projecting all of `B` on it.
+fn rsvd_pilot(
+    b: &dyn BlockSource,
+    cfg: &RsvdConfig,
+    want_u: bool,
+    on_pass: &dyn Fn(&str),
+) -> Result<Compressed> {
+    const CTX: &str = "rsvd_streaming";
+    let n = b.cols();
+    let view = Columns {
+        b,
+        cols: (0..cfg.pilot).map(|j| j * n / cfg.pilot).collect(),
+    };
+    let p = view.cols.len();
+    let pilot = rsvd_basis(
+        &view,
+        &RsvdConfig {
+            pilot: 0,
+            ..cfg.clone()
+        },
+        Basis::Sketch,
+        &|msg| on_pass(&format!("pilot of {p} of {n} columns: {msg}")),
+    )?;
+    let full = || {
+        rsvd_streaming_with(
+            b,
+            &RsvdConfig {
+                pilot: 0,
+                ..cfg.clone()
+            },
+            want_u,
+            on_pass,
+        )
+    };
+    let Some(basis) = pilot.u else {
+        return full();
+    };
+    let started = std::time::Instant::now();
+    // C^T = B^T U_p (n × r_p): every column's coordinates in the pilot's basis.
+    let (ct, total) = times_left_t(CTX, b, basis.as_ref(), cfg.chunk)?;
+    on_pass(&format!(
+        "projection of all {n} columns on the pilot's {} basis vectors, {:.1} s",
+        basis.ncols(),
+        started.elapsed().as_secs_f64()
+    ));
+    if total <= 0.0 {
+        return Err(err(
+            CTX,
+            "the matrix is all zeros: expected something to compress",
+        ));
+    }
+    // C^T = W S Uhat^T: the SVD of the projection U_p U_p^T B, whose energy is exact.
+    let (mut w, s, mut uhat) = thin_svd(CTX, ct.as_ref())?;
+    let Some(rank) = pick_rank(&s, cfg.energy, total) else {
+        on_pass(&format!(
+            "the pilot's basis keeps {:.4} % of the energy of all columns, below {:.4} %: \
+             the randomized SVD runs on all of them",
+            100.0 * kept(&s, s.len(), total),
+            100.0 * cfg.energy
+        ));
+        return full();
+    };
+    fix_signs(w.as_mut(), Some(uhat.as_mut()));
+    let coords = coords_of(&s, w.as_ref(), rank);
+    let u = want_u.then(|| {
+        let mut u = Mat::zeros(basis.nrows(), rank);
+        mm(
+            u.as_mut(),
+            Accum::Replace,
+            basis.as_ref(),
+            uhat.as_ref().subcols(0, rank),
+        );
+        u
+    });
+    let kept_energy = kept(&s, rank, total);
+    Ok(Compressed {
+        rank,
+        singular: s,
+        total_energy: total,
+        kept_energy,
+        coords,
+        u,
+        passes: 1,
+        pilot_columns: p,
+        pilot_passes: pilot.passes,
+    })
 }
 
 /// How [`cx`] chooses columns.
@@ -1139,19 +1344,40 @@ mod tests {
         assert!((resid / total - (1.0 - c.kept_energy)).abs() < 1e-10);
     }
 
-    #[test]
-    fn rsvd_streaming_accurate_and_deterministic() {
-        let s: Vec<f64> = (0..300).map(|i| 0.8f64.powi(i)).collect();
-        let b = InMemory(with_spectrum(3000, 1500, &s, 11));
-        let cfg = RsvdConfig {
-            energy: 0.999999,
+    fn pool(threads: usize) -> rayon::ThreadPool {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+    }
+
+    /// The decomposition `c` of `b` is bit for bit the one computed on 1 and on 2 threads.
+    fn same_on_one_and_two_threads(b: &InMemory, cfg: &RsvdConfig, c: &Compressed) {
+        let one = pool(1).install(|| rsvd_streaming(b, cfg, true).unwrap());
+        let two = pool(2).install(|| rsvd_streaming(b, cfg, true).unwrap());
+        assert_eq!(bits(&one), bits(&two));
+        assert_eq!(bits(&one), bits(c));
+    }
+
+    /// The randomized SVD's settings in these tests: `energy` and `pilot` vary.
+    fn test_config(energy: f64, pilot: usize) -> RsvdConfig {
+        RsvdConfig {
+            energy,
             oversample: 10,
             power_iters: 2,
             max_rank: 400,
             chunk: 100,
             seed: 5,
             initial_rank: 0,
-        };
+            pilot,
+        }
+    }
+
+    #[test]
+    fn rsvd_streaming_accurate_and_deterministic() {
+        let s: Vec<f64> = (0..300).map(|i| 0.8f64.powi(i)).collect();
+        let b = InMemory(with_spectrum(3000, 1500, &s, 11));
+        let cfg = test_config(0.999999, 0);
         let c = rsvd_streaming(&b, &cfg, true).unwrap();
         let worst = (0..20)
             .map(|i| (c.singular[i] - s[i]).abs() / s[i])
@@ -1180,16 +1406,7 @@ mod tests {
             "{}",
             lines[0]
         );
-        let pool = |t| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(t)
-                .build()
-                .unwrap()
-        };
-        let one = pool(1).install(|| rsvd_streaming(&b, &cfg, true).unwrap());
-        let two = pool(2).install(|| rsvd_streaming(&b, &cfg, true).unwrap());
-        assert_eq!(bits(&one), bits(&two));
-        assert_eq!(bits(&one), bits(&c));
+        same_on_one_and_two_threads(&b, &cfg, &c);
         let g1 = pool(1).install(|| svd_gram(&b, 0.999, 256, true).unwrap());
         let g2 = pool(2).install(|| svd_gram(&b, 0.999, 256, true).unwrap());
         assert_eq!(bits(&g1), bits(&g2));
@@ -1211,6 +1428,79 @@ mod tests {
         assert_eq!(c2.rank, 100);
         assert!(c2.kept_energy <= exact_kept + 1e-12 && c2.kept_energy > exact_kept - 1e-6);
         assert_eq!(c2.passes, 2 * (2 + 2 * cfg.power_iters));
+    }
+
+    #[test]
+    fn a_pilot_finds_the_basis_in_one_pass_over_the_whole_matrix() {
+        let s: Vec<f64> = (0..300).map(|i| 0.8f64.powi(i)).collect();
+        let b = InMemory(with_spectrum(2000, 1500, &s, 13));
+        let cfg = test_config(0.9999, 200);
+        let whole = rsvd_streaming(
+            &b,
+            &RsvdConfig {
+                pilot: 0,
+                ..cfg.clone()
+            },
+            true,
+        )
+        .unwrap();
+        let lines = std::sync::Mutex::new(Vec::new());
+        let c = rsvd_streaming_with(&b, &cfg, true, &|m| {
+            lines.lock().unwrap().push(m.to_string())
+        })
+        .unwrap();
+        let lines = lines.into_inner().unwrap();
+        eprintln!(
+            "pilot: rank {} (whole: {}), kept {:.9} (whole: {:.9}), {lines:?}",
+            c.rank, whole.rank, c.kept_energy, whole.kept_energy
+        );
+        // One pass over B, the pilot's six over its 200 columns, and the energy kept is B's.
+        assert_eq!((c.passes, c.pilot_columns, c.pilot_passes), (1, 200, 6));
+        assert_eq!(lines.len(), 7);
+        assert!(lines[0].starts_with("pilot of 200 of 1500 columns: attempt 1, pass 1/6"));
+        assert!(c.kept_energy >= cfg.energy);
+        assert!(
+            c.rank <= whole.rank + 1,
+            "{} against {}",
+            c.rank,
+            whole.rank
+        );
+        assert!((c.total_energy - whole.total_energy).abs() < 1e-9 * whole.total_energy);
+        // The coordinates are B's projected on U: U^T B, so U coords reconstructs B to the
+        // energy not kept, and the leading singular values are B's.
+        let u = c.u.as_ref().unwrap();
+        assert!(orthonormality_error(u.as_ref()) < 1e-12);
+        let mut r = b.0.clone();
+        mm(r.as_mut(), Accum::Add, u.as_ref(), (-&c.coords).as_ref());
+        let lost = r.squared_norm_l2() / c.total_energy;
+        assert!((lost - (1.0 - c.kept_energy)).abs() < 1e-9, "{lost}");
+        // Its singular values are those of the projection U U^T B, at most B's: the pilot's
+        // basis is not exactly B's leading subspace, so they differ beyond rounding.
+        let worst = (0..10)
+            .map(|i| (c.singular[i] - s[i]).abs() / s[i])
+            .fold(0.0, f64::max);
+        eprintln!("worst rel. error of the top 10 sigmas: {worst:.2e}");
+        assert!(worst < 1e-4);
+        same_on_one_and_two_threads(&b, &cfg, &c);
+        // Columns the pilot never sees that carry a direction of their own: its basis cannot
+        // keep the energy, and the randomized SVD runs on the whole matrix instead.
+        let mut odd = b.0.clone();
+        for j in (1..1500).step_by(150) {
+            // Column j is not a pilot column (those are multiples of 7.5).
+            odd[(0, j)] += 50.0;
+        }
+        let odd = InMemory(odd);
+        let lines = std::sync::Mutex::new(Vec::new());
+        let f = rsvd_streaming_with(&odd, &cfg, false, &|m| {
+            lines.lock().unwrap().push(m.to_string())
+        })
+        .unwrap();
+        let lines = lines.into_inner().unwrap();
+        assert_eq!((f.passes, f.pilot_columns), (6, 0), "{lines:?}");
+        assert!(f.kept_energy >= cfg.energy);
+        assert!(lines
+            .iter()
+            .any(|l| l.contains("the randomized SVD runs on all of them")));
     }
 
     #[test]
@@ -1290,6 +1580,7 @@ mod tests {
                 chunk: 4,
                 seed: 0,
                 initial_rank: 0,
+                pilot: 0,
             };
             assert!(rsvd_streaming(&good, &cfg, false)
                 .unwrap_err()
@@ -1309,6 +1600,7 @@ mod tests {
             chunk: 4,
             seed: 0,
             initial_rank: 0,
+            pilot: 0,
         };
         assert!(rsvd_streaming(&empty, &cfg, false)
             .unwrap_err()

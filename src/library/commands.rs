@@ -174,15 +174,13 @@ fn summary(dir: &Path, m: &Manifest) -> String {
             .map(|c| ("material (solver's search)", m.materials, m.table_len, c)),
     ];
     for (name, n, rows, c) in parts.into_iter().flatten() {
+        let passes = match (c.pilot_columns, c.pilot_passes) {
+            (Some(cols), Some(pp)) => format!("{} (+ {pp} over a pilot of {cols})", c.passes),
+            _ => c.passes.to_string(),
+        };
         s.push_str(&format!(
-            "| {name} | {n} | {rows} | {} | {:.4} | {} | {} ({}) | {:.4} | {:.4} |\n",
-            c.rank,
-            c.energy_kept,
-            c.passes,
-            c.representatives,
-            c.method,
-            c.cx_rel_error,
-            c.total_rel_error
+            "| {name} | {n} | {rows} | {} | {:.4} | {passes} | {} ({}) | {:.4} | {:.4} |\n",
+            c.rank, c.energy_kept, c.representatives, c.method, c.cx_rel_error, c.total_rel_error
         ));
     }
     let items = if b.shards_merged > 0 {

@@ -48,7 +48,14 @@ pub struct ArrayEntry {
 pub struct CompressionReport {
     pub rank: usize,
     pub energy_kept: f64,
+    /// Full passes over the matrix.
     pub passes: usize,
+    /// Columns of the pilot the geometry basis was found on (`compression.geometry_pilot`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pilot_columns: Option<usize>,
+    /// Passes over the pilot's columns.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pilot_passes: Option<usize>,
     pub representatives: usize,
     /// CX error on the compressed coordinates.
     pub cx_rel_error: f64,

@@ -149,6 +149,11 @@ pub struct CompressionSection {
     /// Rank the randomized SVD's first sketch is sized for (a good guess saves a restart).
     #[serde(default = "initial_rank", skip_serializing_if = "is_initial_rank")]
     pub initial_rank: usize,
+    /// Geometries (evenly spaced) on which the randomized SVD finds the geometry basis; every
+    /// geometry is then projected on it in one pass (`lowrank::RsvdConfig::pilot`). Absent: the
+    /// randomized SVD runs on all geometries (`2 + 2 power_iters` passes over the matrix).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub geometry_pilot: Option<usize>,
 }
 
 /// Most entries of one item's table (a geometry's binned column or light-lobe record, a
@@ -508,6 +513,9 @@ impl LibraryProfile {
         pos("compression.oversample", c.oversample, 0, 4096)?;
         pos("compression.power_iters", c.power_iters, 0, 64)?;
         pos("compression.initial_rank", c.initial_rank, 1, 100_000)?;
+        if let Some(p) = c.geometry_pilot {
+            pos("compression.geometry_pilot", p, 1, MAX_ITEMS)?;
+        }
         // Every family's range ends make valid items now, before any directory is touched
         // (a draw between them is then valid too, for the generators' and materials' bounds).
         crate::library::items::check_range_ends(self)
@@ -589,7 +597,14 @@ mod tests {
         // `paper-materials` has the paper's material library, draw for draw.
         let (pm, _) = LibraryProfile::load("paper-materials").unwrap();
         assert_eq!(pm.material, paper.material);
-        assert_eq!(pm.compression, paper.compression);
+        // The same compression, but for the geometry pilot: its geometries are few.
+        assert_eq!(
+            pm.compression,
+            CompressionSection {
+                geometry_pilot: None,
+                ..paper.compression.clone()
+            }
+        );
         assert_eq!(pm.geometry.family.len(), paper.geometry.family.len());
     }
 
