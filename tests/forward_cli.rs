@@ -424,7 +424,8 @@ fn fast_build_settings_reach_the_bvndf() {
         (stderr, fbar)
     };
     let (log_default, default) = run(&[]);
-    assert!(log_default.contains("512 directions"), "{log_default}");
+    // 24 polar nodes × 32 azimuths.
+    assert!(log_default.contains("768 directions"), "{log_default}");
     let (log_fine, fine) = run(&[
         "--n-theta",
         "10",
