@@ -157,3 +157,36 @@ fn seen_rays_remove_the_view_rays_noise_on_a_rough_surface() {
     assert!(e_cv < 0.7 * e_plain, "{e_cv} vs {e_plain}");
     assert!(e_cv < 0.035, "{e_cv}");
 }
+
+/// Tall sine grooves at grazing angles: between polar nodes the visible part changes faster than
+/// 16 nodes follow (3.32 % from the exact method at 128², the one held-out case of
+/// `bench accuracy --seed 2` over 3 %); `forward`'s default has 24 (docs/forward-model.md).
+#[test]
+fn the_default_polar_nodes_follow_tall_grooves_at_grazing_angles() {
+    let (hf, pairs, exact, pf) = case(
+        "sine:n=64,period=8,amplitude=3.5",
+        "ward:alpha=0.117+lambert:albedo=0.17",
+        2,
+    );
+    let err = |n_theta| {
+        let cfg = BvndfConfig {
+            n_theta,
+            ..BvndfConfig::forward()
+        };
+        relative_rms(
+            &fast::fbar(&CompactBvndf::build(&hf, &cfg), &pf, &pairs),
+            &exact,
+        )
+    };
+    let (sixteen, default) = (err(16), err(BvndfConfig::forward().n_theta));
+    eprintln!(
+        "tall sine grooves, {} pairs: 16 polar nodes {:.2} %, the default {:.2} %",
+        pairs.len(),
+        100.0 * sixteen,
+        100.0 * default
+    );
+    assert!(
+        default < 0.015 && default < 0.6 * sixteen,
+        "{default} vs {sixteen}"
+    );
+}
