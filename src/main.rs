@@ -175,6 +175,12 @@ enum Cmd {
         /// by their binned columns (the pool then comes from the light-lobe rankings: X and, when the library has them, the weights refitted to the light lobes).
         #[arg(long)]
         lobes_search_only: bool,
+        /// Geometry solver: when the pool's best is over 1 %, re-rank up to N more pools from the
+        /// search's ranking, while each finds a geometry at under half the error (0: the pool
+        /// only). The general
+        /// solver widens one last geometry solve, with the best material found
+        #[arg(long, default_value_t = biscale::solve::geometry::WIDEN)]
+        widen: usize,
         /// General solver: starts (plus two from the first start's material sharpened, lobe
         /// widths x 0.4 and x 0.25, each run only when no start before it came within
         /// --stop-below) and iterations per start.
@@ -243,6 +249,12 @@ enum Cmd {
         /// by their binned columns (the pool then comes from the light-lobe rankings: X and, when the library has them, the weights refitted to the light lobes).
         #[arg(long)]
         lobes_search_only: bool,
+        /// Geometry solver: when the pool's best is over 1 %, re-rank up to N more pools from the
+        /// search's ranking, while each finds a geometry at under half the error (0: the pool
+        /// only). The general
+        /// solver widens one last geometry solve, with the best material found
+        #[arg(long, default_value_t = biscale::solve::geometry::WIDEN)]
+        widen: usize,
         #[arg(long, default_value_t = 3, value_parser = in_range::<usize>(1, 1000))]
         k: usize,
         /// General solver: starts (plus two from the first start's material sharpened, lobe
@@ -542,6 +554,7 @@ fn main() -> ExitCode {
             k,
             pool,
             lobes_search_only,
+            widen,
             starts,
             iterations,
             beam,
@@ -578,6 +591,7 @@ fn main() -> ExitCode {
                         k: k.max(1),
                         pool: pool.map_or(0, |p| p.max(1)),
                         binned_search: !lobes_search_only,
+                        widen,
                         psi: psi.max(1),
                         beta,
                         final_eval: match final_eval {
@@ -618,6 +632,7 @@ fn main() -> ExitCode {
             psi,
             pool,
             lobes_search_only,
+            widen,
             k,
             starts,
             beam,
@@ -642,6 +657,7 @@ fn main() -> ExitCode {
                                 psi: psi.max(1),
                                 pool: pool.map_or(0, |p| p.max(1)),
                                 binned_search: !lobes_search_only,
+                                widen,
                                 k: k.max(1),
                                 final_eval: biscale::solve::Final::Fast,
                                 ..Default::default()

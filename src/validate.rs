@@ -76,7 +76,7 @@ impl ValidateJob {
 /// One library combination as a target look as the library represents it: the geometry's
 /// stored light lobes with the material's stored table. Defined at the library's lights only
 /// (targets cannot be rotated).
-fn library_look(lib: &Library, g: usize, m: usize) -> Result<Look> {
+pub fn library_look(lib: &Library, g: usize, m: usize) -> Result<Look> {
     let gi = lib.geometry_items()?;
     let mi = lib.material_items()?;
     let lobes = lib.geometry_lobes()?;
@@ -585,23 +585,26 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
 fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
     let mi = lib.material_items()?;
     let (ng, nm) = (lib.manifest.geometries, lib.manifest.materials);
-    // (pool, psi, re-rank with light lobes (else binned columns), stage 1 also ranks by binned
-    // columns, final evaluation)
-    let settings: Vec<(usize, usize, bool, bool, Final)> = vec![
-        (1, 1, false, false, Final::Library),
-        (64, 1, false, false, Final::Library),
-        (1, 1, true, false, Final::Library),
-        (4, 1, true, false, Final::Library),
-        (16, 1, true, false, Final::Library),
-        (64, 1, true, false, Final::Library),
-        (256, 1, true, false, Final::Library),
-        (16, 1, true, true, Final::Library),
-        (64, 1, true, true, Final::Library),
-        (256, 1, true, true, Final::Library),
-        (1024, 1, true, true, Final::Library),
-        (4096, 1, true, true, Final::Library),
-        (256, 4, true, true, Final::Library),
-        (256, 1, true, true, Final::Fast),
+    // (pool, further pools re-ranked when the best is over 1 % (`SolveOptions::widen`), psi,
+    // re-rank with light lobes (else binned columns), stage 1 also ranks by binned columns,
+    // final evaluation)
+    let settings: Vec<(usize, usize, usize, bool, bool, Final)> = vec![
+        (1, 0, 1, false, false, Final::Library),
+        (64, 0, 1, false, false, Final::Library),
+        (1, 0, 1, true, false, Final::Library),
+        (4, 0, 1, true, false, Final::Library),
+        (16, 0, 1, true, false, Final::Library),
+        (64, 0, 1, true, false, Final::Library),
+        (256, 0, 1, true, false, Final::Library),
+        (16, 0, 1, true, true, Final::Library),
+        (64, 0, 1, true, true, Final::Library),
+        (64, 3, 1, true, true, Final::Library),
+        (256, 0, 1, true, true, Final::Library),
+        (256, 3, 1, true, true, Final::Library),
+        (1024, 0, 1, true, true, Final::Library),
+        (4096, 0, 1, true, true, Final::Library),
+        (256, 0, 4, true, true, Final::Library),
+        (256, 0, 1, true, true, Final::Fast),
     ];
     let mut rng = Rng::new(job.seed ^ 0x5eed);
     let cases: Vec<(usize, usize)> = (0..job.cases)
@@ -611,11 +614,12 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
         .iter()
         .map(|&(g, m)| combo_look(lib, g, m))
         .collect::<Result<_>>()?;
-    let mut out = String::from("\nError against run time (geometry solver, same cases; errors verified with the target's model):\n\n| re-ranked pool | stage 1 / stage 2 by | psi | final | median error | within 7 % | recovery | median time |\n|---|---|---|---|---|---|---|---|\n");
+    let mut out = String::from("\nError against run time (geometry solver, same cases; errors verified with the target's model):\n\n| re-ranked pool | widened | stage 1 / stage 2 by | psi | final | median error | within 7 % | recovery | median time |\n|---|---|---|---|---|---|---|---|---|\n");
     let mut points = Vec::new();
-    for &(pool, psi, rerank_fast, binned_search, fin) in &settings {
+    for &(pool, widen, psi, rerank_fast, binned_search, fin) in &settings {
         let opt = SolveOptions {
             pool,
+            widen,
             psi,
             rerank_fast,
             binned_search,
@@ -644,7 +648,12 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
             (true, true) => "lobes + binned / lobes",
         };
         out += &format!(
-            "| {pool} | {by} | {psi} | {fin:?} | {:.2} % | {:.1} % | {:.1} % | {:.3} s |\n",
+            "| {pool} | {} | {by} | {psi} | {fin:?} | {:.2} % | {:.1} % | {:.1} % | {:.3} s |\n",
+            if widen > 0 {
+                format!("up to {widen}× more")
+            } else {
+                "no".to_string()
+            },
             me * 100.0,
             t.pct(t.within7),
             t.pct(t.recovered),

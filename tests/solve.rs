@@ -903,3 +903,114 @@ fn design_checks_inputs_first_and_reads_paths_beside_the_scene() {
         "{e}"
     );
 }
+
+/// Widening (`SolveOptions::widen`): when the pool's best is over `geometry::WIDEN_ABOVE`, the
+/// geometry solver re-ranks the next pools of its search's ranking while they find geometries
+/// at under half the error. On library targets (the paper's protocol, where the right geometry
+/// is at 0 %), a pool of one widened is never worse than the pool alone, finds better answers
+/// where the pool missed, says in its notes whether it kept a further pool, and leaves answers
+/// within the bound alone.
+#[test]
+fn a_widened_geometry_pool_finds_what_the_pool_missed() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let (ng, mats) = (lib.manifest.geometries, lib.material_items().unwrap());
+    let bound = biscale::solve::geometry::WIDEN_ABOVE;
+    let (mut improved, mut kept) = (0, 0);
+    for m in [0, mats.len() / 2] {
+        let mat = parse_material(&mats[m].spec).unwrap();
+        for g in 0..ng {
+            let look = biscale::validate::library_look(&lib, g, m).unwrap();
+            let solve = |widen: usize| {
+                let opt = SolveOptions {
+                    k: 1,
+                    pool: 1,
+                    widen,
+                    final_eval: Final::Library,
+                    ..Default::default()
+                };
+                biscale::solve::geometry::solve(&lib, &look, &mat, &mats[m].spec, Some(m), &opt)
+                    .unwrap()
+            };
+            let (one, wide) = (solve(0), solve(ng));
+            let (e0, e1) = (one.candidates[0].error, wide.candidates[0].error);
+            let note = |s: &biscale::solve::SolveStats, what: &str| {
+                s.notes.iter().any(|n| n.starts_with(what))
+            };
+            let (widened, dropped) = (
+                note(&wide.stats, "geometry pool widened to"),
+                note(&wide.stats, "geometry pool not widened"),
+            );
+            assert!(e1 <= e0, "({g}, {m}): widened {e1} against {e0}");
+            assert!(!note(&one.stats, "geometry pool"), "{:?}", one.stats.notes);
+            let same = one.candidates[0].geometry == wide.candidates[0].geometry;
+            if e0 <= bound {
+                // Within the bound: nothing more is re-ranked, the answer is the pool's.
+                assert!(
+                    !widened && !dropped,
+                    "({g}, {m}) at {e0}: {:?}",
+                    wide.stats.notes
+                );
+                assert!(same);
+                kept += 1;
+            } else if widened {
+                // A further pool is kept only for a geometry at under half the error.
+                assert!(e1 < e0 * biscale::solve::geometry::WIDEN_GAIN, "({g}, {m})");
+                improved += 1;
+            } else {
+                // Re-ranked and dropped: the pool's answer stands.
+                assert!(dropped, "({g}, {m}) at {e0}: {:?}", wide.stats.notes);
+                assert!(same && e1 == e0, "({g}, {m})");
+            }
+        }
+    }
+    assert!(
+        improved > 0 && kept > 0,
+        "{improved} improved, {kept} within the bound"
+    );
+}
+
+/// The general solver's alternation keeps to its pools; when nothing came within the widening
+/// bound, one last geometry solve with the best material found widens its pool (and says so),
+/// and `widen = 0` leaves it out.
+#[test]
+fn general_solver_widens_one_last_geometry_solve_when_nothing_is_close() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let look = Look::from_spec("ward:ax=0.3,ay=0.08", Default::default(), None).unwrap();
+    let (opt, g) = small_general(3, 4, 1, 2);
+    let run = |widen: usize| {
+        let opt = SolveOptions {
+            widen,
+            ..opt.clone()
+        };
+        biscale::solve::general::explore(&lib, &look, &opt, &g).unwrap()
+    };
+    let (wide, st) = run(biscale::solve::geometry::WIDEN);
+    assert!(wide[0].error > biscale::solve::geometry::WIDEN_ABOVE);
+    let last: Vec<&String> = st
+        .notes
+        .iter()
+        .filter(|n| n.contains("a last geometry solve with the best material"))
+        .collect();
+    assert_eq!(last.len(), 1, "{:?}", st.notes);
+    // Whether a further pool was kept (its best under half the pool's) or dropped, the log
+    // says which.
+    assert!(
+        last[0].contains("geometry pool widened to")
+            || last[0].contains("geometry pool not widened"),
+        "{:?}",
+        st.notes
+    );
+    let (narrow, st) = run(0);
+    assert!(
+        !st.notes.iter().any(|n| n.contains("a last geometry solve")),
+        "{:?}",
+        st.notes
+    );
+    // The last solve only adds combinations: the best is no worse.
+    assert!(
+        wide[0].error <= narrow[0].error,
+        "{} > {}",
+        wide[0].error,
+        narrow[0].error
+    );
+}

@@ -78,9 +78,12 @@ pub fn explore(
     // for every start gave 92 % within 7 %, half the geometry pool (1027) 94 % and the whole
     // one (2055) 94 % in a quarter more time; on `paper4` the whole pool for the first start
     // only gave 92 -> 94 % in 1.5 % more time (docs/solvers.md).
+    // The alternation's geometry solves keep to their pools; only the last one widens
+    // (below), with the best material found.
     let inner = SolveOptions {
         final_eval: Final::Library,
         k: opt.k.max(3),
+        widen: 0,
         ..opt.clone()
     };
     let first_geometry = SolveOptions {
@@ -272,6 +275,59 @@ pub fn explore(
             m = best_m.material.unwrap_or(m);
         }
         s += 1;
+    }
+    // When nothing came within the geometry solver's widening bound, the best combination's
+    // material gets one more geometry solve, the first start's, with its pool widened
+    // ([`SolveOptions::widen`]), and its best geometry a material solve: with a sharp material
+    // the right geometry can rank past a pool, and the alternation's solves do not widen.
+    let best = seen.iter().min_by(|a, b| a.error.total_cmp(&b.error));
+    if let Some(m) = best
+        .filter(|c| opt.widen > 0 && c.error > super::geometry::WIDEN_ABOVE)
+        .and_then(|c| c.material)
+    {
+        let mat: Material = parse_material(&mats[m].spec)?;
+        let gr = super::geometry::solve_with(
+            lib,
+            look,
+            &mat,
+            &mats[m].spec,
+            Some(m),
+            &SolveOptions {
+                widen: opt.widen,
+                ..first_geometry.clone()
+            },
+            rep_pairs.as_ref(),
+        )?;
+        accumulate(&mut stats, &gr.stats);
+        let widened = gr
+            .stats
+            .notes
+            .iter()
+            .find(|n| n.starts_with("geometry pool"));
+        stats.notes.push(format!(
+            "a last geometry solve with the best material so far ({}): {}",
+            mats[m].spec,
+            widened.map_or("the best of its pool was within the widening bound", |n| n
+                .as_str())
+        ));
+        if let Some(c) = gr.candidates.first() {
+            let j = c.geometry.unwrap_or(0);
+            if !material_solves.contains_key(&(j, c.psi_deg.to_bits())) {
+                let hf = library_heightfield(&c.geometry_spec)?;
+                let mr = super::material::solve(
+                    lib,
+                    look,
+                    &hf,
+                    &c.geometry_spec,
+                    Some(j),
+                    c.psi_deg,
+                    &inner,
+                )?;
+                accumulate(&mut stats, &mr.stats);
+                seen.extend(mr.candidates);
+            }
+        }
+        seen.extend(gr.candidates);
     }
     // Distinct combinations, best first: a (geometry, material) pair once, at its best rotation.
     seen.sort_by(|a, b| a.error.total_cmp(&b.error));

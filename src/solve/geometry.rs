@@ -82,6 +82,18 @@ impl ItemData {
 /// (at least this many), and evaluates what is left at every sample.
 pub const COARSE_KEEP: usize = 32;
 
+/// Stage 2 re-ranks further pools ([`SolveOptions::widen`]) while its best is over this relative
+/// error: 1 %, the general solver's stopping rule ([`super::general::STOP_BELOW`]).
+pub const WIDEN_ABOVE: f64 = super::general::STOP_BELOW;
+
+/// A further pool is kept only when its best is below this fraction of the best before it
+/// (half): a geometry that halves the error is a different answer, a smaller gain is within
+/// what the library's data and the full forward model disagree by for sharp materials.
+pub const WIDEN_GAIN: f64 = 0.5;
+
+/// Further pools stage 2 may re-rank by default: the pool at most four times over.
+pub const WIDEN: usize = 3;
+
 /// Each coarse pass keeps a quarter of the pool, and uses a quarter of the next pass's samples.
 pub const COARSE_STEP: usize = 4;
 
@@ -241,7 +253,10 @@ pub fn solve_with(
             .flat_map(|(ri, e)| e.into_iter().enumerate().map(move |(j, e)| (e, j, ri)))
             .collect();
     let errs: Vec<f64> = scored.iter().map(|s| s.0).collect();
-    let mut rankings = vec![smallest(&errs, pool_size)];
+    // The rankings reach as deep as the widened pools may go; the first `pool_size` of their
+    // interleaving are the pool either way (each ranking is a prefix of a deeper one).
+    let depth = pool_size.saturating_mul(1 + opt.widen);
+    let mut rankings = vec![smallest(&errs, depth)];
     // The second ranking: the representatives' binned columns with the material's response,
     // the linear model the CX weights were fitted to (same (rotation, item) layout).
     if let (ItemData::Lobes { pf, .. }, true) = (&data, opt.binned_search) {
@@ -263,15 +278,15 @@ pub fn solve_with(
             })
             .collect::<Result<_>>()?;
         let binned = search_errors_multi(shared, &targets, &b, xs, items.len(), rescore).concat();
-        rankings.push(smallest(&binned, pool_size));
+        rankings.push(smallest(&binned, depth));
     }
     // The third: the representatives' light-lobe values with the weights refitted to them.
     if let (ItemData::Lobes { .. }, Some(xl)) = (&data, xl) {
         let refit = search_errors_multi(shared, &targets, &a, xl, items.len(), rescore).concat();
-        rankings.push(smallest(&refit, pool_size));
+        rankings.push(smallest(&refit, depth));
     }
     let refs: Vec<&[usize]> = rankings.iter().map(|r| r.as_slice()).collect();
-    let pool = interleave(&refs, pool_size);
+    let order = interleave(&refs, depth);
     stats.items_searched = items.len() * rots.len();
     stats.representatives = reps.len();
     stats.search_seconds = t0.elapsed().as_secs_f64();
@@ -281,36 +296,75 @@ pub fn solve_with(
     // `step`-th sample and keeps its best quarter), until at most COARSE_KEEP are left for
     // every sample — or `k` per rotation: the pool holds (geometry, rotation) pairs and the
     // answers are `k` different geometries, which up to `k × psi` pairs may take.
-    let pool = match &data {
-        ItemData::Lobes { lobes, pf } => narrow(
-            pool,
-            COARSE_KEEP.max(opt.k * rots.len()),
-            rots[0].samples.pairs.len(),
-            |pool, step| {
-                let coarse: Vec<_> = rots
-                    .iter()
-                    .map(|r| super::coarse_at(&layout, &r.samples, &r.target, step))
-                    .collect();
-                pool.par_iter()
-                    .map(|&i| {
-                        let (_, j, ri) = scored[i];
-                        let (s, t, at) = &coarse[ri];
-                        Ok(s.rel_error(t, &lobes.get(j)?.fbar(pf, at)))
-                    })
-                    .collect()
-            },
-        )?,
-        ItemData::Binned { .. } => pool,
+    let rerank = |pool: &[usize]| -> Result<Vec<(f64, f64, usize, usize)>> {
+        let pool = match &data {
+            ItemData::Lobes { lobes, pf } => narrow(
+                pool.to_vec(),
+                COARSE_KEEP.max(opt.k * rots.len()),
+                rots[0].samples.pairs.len(),
+                |pool, step| {
+                    let coarse: Vec<_> = rots
+                        .iter()
+                        .map(|r| super::coarse_at(&layout, &r.samples, &r.target, step))
+                        .collect();
+                    pool.par_iter()
+                        .map(|&i| {
+                            let (_, j, ri) = scored[i];
+                            let (s, t, at) = &coarse[ri];
+                            Ok(s.rel_error(t, &lobes.get(j)?.fbar(pf, at)))
+                        })
+                        .collect()
+                },
+            )?,
+            ItemData::Binned { .. } => pool.to_vec(),
+        };
+        pool.par_iter()
+            .map(|&i| {
+                let (se, j, ri) = scored[i];
+                let r = &rots[ri];
+                let v = data.values(j, r)?;
+                Ok((r.samples.rel_error(&r.target, &v), se, j, ri))
+            })
+            .collect()
     };
-    let mut reranked: Vec<(f64, f64, usize, usize)> = pool
-        .par_iter()
-        .map(|&i| {
-            let (se, j, ri) = scored[i];
-            let r = &rots[ri];
-            let v = data.values(j, r)?;
-            Ok((r.samples.rel_error(&r.target, &v), se, j, ri))
-        })
-        .collect::<Result<_>>()?;
+    let best_of =
+        |r: &[(f64, f64, usize, usize)]| r.iter().map(|x| x.0).fold(f64::INFINITY, f64::min);
+    let extent =
+        |e: usize| &order[(e * pool_size).min(order.len())..((e + 1) * pool_size).min(order.len())];
+    let mut reranked = rerank(extent(0))?;
+    // Widening: the next pools of the rankings while the best is not yet close and each further
+    // pool found a decisively better geometry (a sharp material's reconstruction from the
+    // representatives can rank the right geometry past the pool). A pool that does not is
+    // dropped whole: a small gain is within what the library's data and the full model
+    // disagree by, and taking it would trade the pool's answer for a worse one.
+    let mut best = best_of(&reranked);
+    let (mut extents, mut widened) = (1, 1);
+    while best > WIDEN_ABOVE && extents <= opt.widen && !extent(extents).is_empty() {
+        let more = rerank(extent(extents))?;
+        let b = best_of(&more);
+        extents += 1;
+        if b >= best * WIDEN_GAIN {
+            break;
+        }
+        widened = extents;
+        reranked.extend(more);
+        best = b;
+    }
+    if widened > 1 {
+        stats.notes.push(format!(
+            "geometry pool widened to {} (the best of the first {pool_size} was over {:.0} %; \
+             a further pool's best was under {:.0} % of it)",
+            (widened * pool_size).min(order.len()),
+            100.0 * WIDEN_ABOVE,
+            100.0 * WIDEN_GAIN
+        ));
+    } else if extents > 1 {
+        stats.notes.push(format!(
+            "geometry pool not widened: the next {pool_size} held nothing better than {:.0} % of \
+             the pool's best",
+            100.0 * WIDEN_GAIN
+        ));
+    }
     reranked.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.2.cmp(&b.2)));
     // Each geometry once, at its best rotation: the K answers are K different geometries.
     let mut seen = std::collections::HashSet::new();

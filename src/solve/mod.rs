@@ -103,6 +103,10 @@ pub struct SolveOptions {
     /// ([`interleave`]). The two estimates fail in different places (see
     /// `docs/solvers.md`, "Two rankings"), so a geometry either ranks well is re-ranked.
     pub binned_search: bool,
+    /// Geometry solver, stage 2: when the pool's best is over [`geometry::WIDEN_ABOVE`],
+    /// re-rank up to this many further pools from stage 1's rankings, while each finds a
+    /// geometry at under [`geometry::WIDEN_GAIN`] times the best before it (0: the pool only).
+    pub widen: usize,
     /// Rotations tried by the geometry solver.
     pub psi: usize,
     /// Weight of the colour term (Eq. 13).
@@ -120,6 +124,7 @@ impl Default for SolveOptions {
             pool: 0,
             rerank_fast: true,
             binned_search: true,
+            widen: geometry::WIDEN,
             psi: 1,
             beta: 0.0,
             final_eval: Final::Exact,
