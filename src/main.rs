@@ -128,7 +128,8 @@ enum Cmd {
         /// Multiplies stored heights (file values × scale = mm).
         #[arg(long, default_value_t = 1.0)]
         height_scale: f64,
-        /// Exact method: points per facet side (s² visibility samples per facet).
+        /// Exact method: view rays per cell side (s² rays through each heightmap cell; its noise
+        /// on sharp lobes falls as this grows, the cost grows with its square).
         #[arg(long, default_value_t = 2, value_parser = in_range::<usize>(1, 16))]
         exact_samples: usize,
         /// Fast method: the compact BVNDF's build.
