@@ -167,6 +167,21 @@ pub fn explore(
     // or the same geometry and rotation) is read back instead of repeated.
     let mut geometry_solves: HashMap<usize, Vec<Candidate>> = HashMap::new();
     let mut material_solves: HashMap<(usize, u64), Vec<Candidate>> = HashMap::new();
+    // A geometry solve with library material `m`, through the joint search's representative
+    // pairs when there are any.
+    let rep_pairs = rep_pairs;
+    let geometry_solve = |m: usize, o: &SolveOptions| -> Result<SolveResult> {
+        let mat: Material = parse_material(&mats[m].spec)?;
+        super::geometry::solve_with(
+            lib,
+            look,
+            &mat,
+            &mats[m].spec,
+            Some(m),
+            o,
+            rep_pairs.as_ref(),
+        )
+    };
     let mut s = 0;
     loop {
         if stopped {
@@ -212,19 +227,13 @@ pub fn explore(
         let mut last: Option<(usize, i64, usize)> = None;
         for _ in 0..g.max_iterations.max(1) {
             if let Entry::Vacant(slot) = geometry_solves.entry(m) {
-                let mat: Material = parse_material(&mats[m].spec)?;
-                let gr = super::geometry::solve_with(
-                    lib,
-                    look,
-                    &mat,
-                    &mats[m].spec,
-                    Some(m),
+                let gr = geometry_solve(
+                    m,
                     if s == 0 {
                         &first_geometry
                     } else {
                         &later_geometry
                     },
-                    rep_pairs.as_ref(),
                 )?;
                 accumulate(&mut stats, &gr.stats);
                 seen.extend(gr.candidates.iter().cloned());
@@ -285,18 +294,12 @@ pub fn explore(
         .filter(|c| opt.widen > 0 && c.error > super::geometry::WIDEN_ABOVE)
         .and_then(|c| c.material)
     {
-        let mat: Material = parse_material(&mats[m].spec)?;
-        let gr = super::geometry::solve_with(
-            lib,
-            look,
-            &mat,
-            &mats[m].spec,
-            Some(m),
+        let gr = geometry_solve(
+            m,
             &SolveOptions {
                 widen: opt.widen,
                 ..first_geometry.clone()
             },
-            rep_pairs.as_ref(),
         )?;
         accumulate(&mut stats, &gr.stats);
         let widened = gr
