@@ -149,6 +149,30 @@ pub fn sample(
     }
 }
 
+/// How far the brightness of a guessed material may be off when errors are taken at the best
+/// brightness ([`scaled_rel_error`]): scales in `[1/4, 4]`. A library's specular materials span
+/// Fresnel `f0` from 0.02 to 0.97; the general solver's starts are within a few times of the
+/// look's brightness, and a wider range lets nearly black geometries (deep grooves at grazing
+/// views) pass for bright ones.
+pub const MAX_BRIGHTNESS_SCALE: f64 = 4.0;
+
+/// The relative error `sqrt(|t − s f|² / |t|²)` (weighted) from `n2 = |t|²`, `lin = ⟨t, f⟩` and
+/// `quad = |f|²`: at `s = 1`, or, when `any_brightness`, at the `s` in `[1/MAX_BRIGHTNESS_SCALE,
+/// MAX_BRIGHTNESS_SCALE]` that minimises it (`lin / quad`, clamped): the error of `f`'s shape,
+/// whatever its brightness. Infinite for a black target.
+pub fn scaled_rel_error(n2: f64, lin: f64, quad: f64, any_brightness: bool) -> f64 {
+    let s = if any_brightness && quad > 0.0 {
+        (lin / quad).clamp(1.0 / MAX_BRIGHTNESS_SCALE, MAX_BRIGHTNESS_SCALE)
+    } else {
+        1.0
+    };
+    if n2 > 0.0 {
+        ((n2 - 2.0 * s * lin + s * s * quad).max(0.0) / n2).sqrt()
+    } else {
+        f64::INFINITY
+    }
+}
+
 impl Samples {
     /// Every `step`-th pair (from the first) with its weight, and the same entries of `t`: a
     /// coarse version of the set, for ranking many candidates before evaluating the best at
@@ -187,6 +211,24 @@ impl Samples {
             .sum()
     }
 
+    /// [`Samples::rel_error`] of `f` scaled by the factor in `[1/MAX_BRIGHTNESS_SCALE,
+    /// MAX_BRIGHTNESS_SCALE]` that brings it closest to `t` when `any_brightness` (a guessed
+    /// material's brightness is the next material solve's to fix, [`scaled_rel_error`]), else
+    /// of `f` itself.
+    pub fn rel_error_scaled(&self, t: &[f64], f: &[f64], any_brightness: bool) -> f64 {
+        if !any_brightness {
+            return self.rel_error(t, f);
+        }
+        let (mut n2, mut lin, mut quad) = (0.0, 0.0, 0.0);
+        for ((t, f), w) in t.iter().zip(f).zip(&self.weights) {
+            let w2 = w * w;
+            n2 += w2 * t * t;
+            lin += w2 * t * f;
+            quad += w2 * f * f;
+        }
+        scaled_rel_error(n2, lin, quad, true)
+    }
+
     /// Relative error `sqrt(d(t, f) / d(t, 0))`.
     pub fn rel_error(&self, t: &[f64], f: &[f64]) -> f64 {
         let n = self.norm2(t);
@@ -210,6 +252,25 @@ impl Samples {
 mod tests {
     use super::*;
     use crate::target::Target;
+
+    #[test]
+    fn errors_at_the_best_brightness_fit_a_scaled_copy_within_the_range() {
+        let s = Samples {
+            pairs: vec![(0, Vec3::Z); 3],
+            lights: vec![Vec3::Z],
+            weights: vec![1.0, 0.5, 2.0],
+        };
+        let t = [1.0, 2.0, 0.5];
+        let f = |k: f64| t.iter().map(|v| k * v).collect::<Vec<_>>();
+        assert_eq!(s.rel_error_scaled(&t, &f(2.0), false), s.rel_error(&t, &f(2.0)));
+        assert!((s.rel_error(&t, &f(2.0)) - 1.0).abs() < 1e-12);
+        // Twice as bright: fitted exactly; ten times: the scale stops at 4 (2.5x the target).
+        assert!(s.rel_error_scaled(&t, &f(2.0), true) < 1e-7);
+        assert!((s.rel_error_scaled(&t, &f(10.0), true) - 1.5).abs() < 1e-12);
+        // A different shape keeps an error; a black target has no scale.
+        assert!(s.rel_error_scaled(&t, &[2.0, 1.0, 0.5], true) > 0.1);
+        assert_eq!(scaled_rel_error(0.0, 0.0, 1.0, true), f64::INFINITY);
+    }
 
     #[test]
     fn every_keeps_each_steps_pair_with_its_weight_and_target_value() {

@@ -1014,3 +1014,36 @@ fn general_solver_widens_one_last_geometry_solve_when_nothing_is_close() {
         narrow[0].error
     );
 }
+
+#[test]
+fn any_brightness_geometry_solve_ranks_by_shape_and_reports_the_materials_own_error() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let (ng, mats) = (lib.manifest.geometries, lib.material_items().unwrap());
+    let m = mats.len() / 2;
+    let mat = parse_material(&mats[m].spec).unwrap();
+    for g in [0, ng / 2, ng - 1] {
+        // The combination's look at half the material's brightness: the material is a guess
+        // twice too bright.
+        let full = biscale::validate::library_look(&lib, g, m).unwrap();
+        let look = Look::from_fn("half", move |wi, wo| 0.5 * full.fbar(wi, wo), None);
+        let opt = SolveOptions {
+            k: 3,
+            any_brightness: true,
+            final_eval: Final::Library,
+            ..Default::default()
+        };
+        let r = biscale::solve::geometry::solve(&lib, &look, &mat, &mats[m].spec, Some(m), &opt)
+            .unwrap();
+        let best = &r.candidates[0];
+        assert_eq!(best.geometry, Some(g), "({g}, {m}): {:?}", r.candidates);
+        // Ranked at brightness 1/2: an exact fit. Its error is the material's own: the
+        // values are twice the target's, |t - 2t| / |t| = 1.
+        assert!(best.rerank_error < 1e-6, "{}", best.rerank_error);
+        assert!((best.error - 1.0).abs() < 1e-6, "{}", best.error);
+        // Listed in ranking order, not by the errors at the material's own brightness.
+        assert!(r
+            .candidates
+            .windows(2)
+            .all(|w| w[0].rerank_error <= w[1].rerank_error));
+    }
+}

@@ -77,6 +77,7 @@ pub fn scan(items: usize, reps: usize, samples: usize, seed: u64) -> Result<Stri
             &x,
             items,
             rescore_share(8, 64),
+            false,
         ))
     });
     let big: Vec<f32> = (0..BANDWIDTH_BYTES / 4).map(|i| (i % 7) as f32).collect();

@@ -228,6 +228,9 @@ pub fn solve_with(
         })
         .collect();
     let pool_size = opt.geometry_pool_for(items.len());
+    // Stages 1 and 2 rank at the best brightness when asked; the candidates' errors are at the
+    // material's own.
+    let anyb = opt.any_brightness;
     let rescore = rescore_share(rots.len(), pool_size);
     // The representatives' values at the shared samples: from the joint search's
     // representative pairs when given (and drawn with the same settings: as many samples),
@@ -247,7 +250,7 @@ pub fn solve_with(
     )?;
     // `[(error, item, rotation)]`, rotation-major.
     let scored: Vec<(f64, usize, usize)> =
-        search_errors_multi(shared, &targets, &a, xs, items.len(), rescore)
+        search_errors_multi(shared, &targets, &a, xs, items.len(), rescore, anyb)
             .into_iter()
             .enumerate()
             .flat_map(|(ri, e)| e.into_iter().enumerate().map(move |(j, e)| (e, j, ri)))
@@ -277,12 +280,12 @@ pub fn solve_with(
                     })
             })
             .collect::<Result<_>>()?;
-        let binned = search_errors_multi(shared, &targets, &b, xs, items.len(), rescore).concat();
+        let binned = search_errors_multi(shared, &targets, &b, xs, items.len(), rescore, anyb).concat();
         rankings.push(smallest(&binned, depth));
     }
     // The third: the representatives' light-lobe values with the weights refitted to them.
     if let (ItemData::Lobes { .. }, Some(xl)) = (&data, xl) {
-        let refit = search_errors_multi(shared, &targets, &a, xl, items.len(), rescore).concat();
+        let refit = search_errors_multi(shared, &targets, &a, xl, items.len(), rescore, anyb).concat();
         rankings.push(smallest(&refit, depth));
     }
     let refs: Vec<&[usize]> = rankings.iter().map(|r| r.as_slice()).collect();
@@ -296,7 +299,8 @@ pub fn solve_with(
     // `step`-th sample and keeps its best quarter), until at most COARSE_KEEP are left for
     // every sample — or `k` per rotation: the pool holds (geometry, rotation) pairs and the
     // answers are `k` different geometries, which up to `k × psi` pairs may take.
-    let rerank = |pool: &[usize]| -> Result<Vec<(f64, f64, usize, usize)>> {
+    // `(ranking error, search error, geometry, rotation, error at the material's brightness)`.
+    let rerank = |pool: &[usize]| -> Result<Vec<(f64, f64, usize, usize, f64)>> {
         let pool = match &data {
             ItemData::Lobes { lobes, pf } => narrow(
                 pool.to_vec(),
@@ -311,7 +315,7 @@ pub fn solve_with(
                         .map(|&i| {
                             let (_, j, ri) = scored[i];
                             let (s, t, at) = &coarse[ri];
-                            Ok(s.rel_error(t, &lobes.get(j)?.fbar(pf, at)))
+                            Ok(s.rel_error_scaled(t, &lobes.get(j)?.fbar(pf, at), anyb))
                         })
                         .collect()
                 },
@@ -323,12 +327,18 @@ pub fn solve_with(
                 let (se, j, ri) = scored[i];
                 let r = &rots[ri];
                 let v = data.values(j, r)?;
-                Ok((r.samples.rel_error(&r.target, &v), se, j, ri))
+                let own = r.samples.rel_error(&r.target, &v);
+                let ranked = if anyb {
+                    r.samples.rel_error_scaled(&r.target, &v, true)
+                } else {
+                    own
+                };
+                Ok((ranked, se, j, ri, own))
             })
             .collect()
     };
     let best_of =
-        |r: &[(f64, f64, usize, usize)]| r.iter().map(|x| x.0).fold(f64::INFINITY, f64::min);
+        |r: &[(f64, f64, usize, usize, f64)]| r.iter().map(|x| x.0).fold(f64::INFINITY, f64::min);
     let extent =
         |e: usize| &order[(e * pool_size).min(order.len())..((e + 1) * pool_size).min(order.len())];
     let mut reranked = rerank(extent(0))?;
@@ -376,10 +386,10 @@ pub fn solve_with(
     let colour = crate::library::items::average_colour(material);
     let mut out: Vec<Candidate> = reranked
         .iter()
-        .map(|&(re, se, j, ri)| {
+        .map(|&(re, se, j, ri, own)| {
             let r = &rots[ri];
             let error = match opt.final_eval {
-                Final::Library => re,
+                Final::Library => own,
                 Final::Fast => {
                     let hf = library_heightfield(&items[j].spec)?;
                     let pf = match &data {
@@ -412,7 +422,11 @@ pub fn solve_with(
             })
         })
         .collect::<Result<_>>()?;
-    out.sort_by(|a, b| a.error.total_cmp(&b.error));
+    // At the best brightness the order is stage 2's: the errors at the material's own
+    // brightness are the answers' errors, not their ranking.
+    if !anyb {
+        out.sort_by(|a, b| a.error.total_cmp(&b.error));
+    }
     stats.final_seconds = t2.elapsed().as_secs_f64();
     Ok(SolveResult {
         candidates: out,

@@ -107,6 +107,11 @@ pub struct SolveOptions {
     /// re-rank up to this many further pools from stage 1's rankings, while each finds a
     /// geometry at under [`geometry::WIDEN_GAIN`] times the best before it (0: the pool only).
     pub widen: usize,
+    /// Geometry solver: rank geometries by their error at the brightness that fits them best
+    /// (within [`crate::sampling::MAX_BRIGHTNESS_SCALE`]), not at the material's own. For a
+    /// material that is a guess, whose brightness the material solve after it fixes: the
+    /// general solver's alternation. Candidates' errors stay the material's own.
+    pub any_brightness: bool,
     /// Rotations tried by the geometry solver.
     pub psi: usize,
     /// Weight of the colour term (Eq. 13).
@@ -125,6 +130,7 @@ impl Default for SolveOptions {
             rerank_fast: true,
             binned_search: true,
             widen: geometry::WIDEN,
+            any_brightness: false,
             psi: 1,
             beta: 0.0,
             final_eval: Final::Exact,
@@ -363,7 +369,7 @@ pub fn search_errors(
     items: usize,
     rescore: usize,
 ) -> Vec<f64> {
-    search_errors_multi(s, std::slice::from_ref(&t.to_vec()), a, x, items, rescore)
+    search_errors_multi(s, std::slice::from_ref(&t.to_vec()), a, x, items, rescore, false)
         .pop()
         .unwrap_or_default()
 }
@@ -374,7 +380,8 @@ pub fn search_errors(
 /// reconstruction `A x` of every rescored item — so `T` targets cost little more than one. Each
 /// target's best `rescore` (by the Gram form) are rescored, and every item rescored for one
 /// target gets its clamped error for all; a library of at most `rescore × T` items gets the
-/// clamped error everywhere.
+/// clamped error everywhere. With `any_brightness` each error is taken at the brightness that
+/// fits best ([`crate::sampling::scaled_rel_error`]): the terms are the same.
 pub fn search_errors_multi(
     s: &Samples,
     ts: &[Vec<f64>],
@@ -382,6 +389,7 @@ pub fn search_errors_multi(
     x: &[f32],
     items: usize,
     rescore: usize,
+    any_brightness: bool,
 ) -> Vec<Vec<f64>> {
     use faer::Mat;
     use rayon::prelude::*;
@@ -398,12 +406,8 @@ pub fn search_errors_multi(
         .iter()
         .map(|tw| tw.iter().map(|v| v * v).sum())
         .collect();
-    let rel = |n2: f64, d2: f64| {
-        if n2 > 0.0 {
-            (d2.max(0.0) / n2).sqrt()
-        } else {
-            f64::INFINITY
-        }
+    let rel = |n2: f64, lin: f64, quad: f64| {
+        crate::sampling::scaled_rel_error(n2, lin, quad, any_brightness)
     };
     let nt = ts.len();
     // Blocks of `n` items each, `[target][item in block]` flattened target-major, joined into
@@ -429,16 +433,29 @@ pub fn search_errors_multi(
                 let mut out = vec![0.0; nt * n];
                 for j in 0..n {
                     let col = prod.col_as_slice(j);
+                    // The clamped reconstruction's own terms; at brightness 1 the squared
+                    // difference is summed directly (no cancellation near an exact match).
+                    let quad: f64 = if any_brightness {
+                        col.iter().map(|v| v.max(0.0) * v.max(0.0)).sum()
+                    } else {
+                        0.0
+                    };
                     for (ti, (tw, &n2)) in tws.iter().zip(&n2s).enumerate() {
-                        let d: f64 = tw
-                            .iter()
-                            .zip(col)
-                            .map(|(tp, v)| {
-                                let e = tp - v.max(0.0);
-                                e * e
-                            })
-                            .sum();
-                        out[ti * n + j] = rel(n2, d);
+                        out[ti * n + j] = if any_brightness {
+                            let lin: f64 = tw.iter().zip(col).map(|(tp, v)| tp * v.max(0.0)).sum();
+                            rel(n2, lin, quad)
+                        } else {
+                            let d: f64 = tw
+                                .iter()
+                                .zip(col)
+                                .map(|(tp, v)| (tp - v.max(0.0)) * (tp - v.max(0.0)))
+                                .sum();
+                            if n2 > 0.0 {
+                                (d / n2).sqrt()
+                            } else {
+                                f64::INFINITY
+                            }
+                        };
                     }
                 }
                 (n, out)
@@ -472,7 +489,7 @@ pub fn search_errors_multi(
             let quad = crate::fastmath::dot(xj, qx.col_as_slice(j));
             for (ti, (b, &n2)) in bvecs.iter().zip(&n2s).enumerate() {
                 let lin = crate::fastmath::dot(xj, b);
-                out[ti * n + j] = rel(n2, n2 - 2.0 * lin + quad);
+                out[ti * n + j] = rel(n2, lin, quad);
             }
         }
         (n, out)
@@ -676,7 +693,7 @@ mod tests {
         let (s, ts, a, x) = random_search(5, 16, 3, 4, items);
         // Small budget: Gram bounds, each target's best rescored, rescored items exact for all.
         let rescore = 100;
-        let multi = search_errors_multi(&s, &ts, &a, &x, items, rescore);
+        let multi = search_errors_multi(&s, &ts, &a, &x, items, rescore, false);
         assert_eq!(multi.len(), ts.len());
         for (t, m) in ts.iter().zip(&multi) {
             let one = search_errors(&s, t, &a, &x, items, rescore);
@@ -690,11 +707,42 @@ mod tests {
             }
         }
         // A budget covering the library: clamped everywhere, as one search of each.
-        let all = search_errors_multi(&s, &ts, &a, &x, 200, 100);
+        let all = search_errors_multi(&s, &ts, &a, &x, 200, 100, false);
         for (t, m) in ts.iter().zip(&all) {
             let one = search_errors(&s, t, &a, &x, 200, 200);
             assert!(m.iter().zip(&one).all(|(p, q)| (p - q).abs() < 1e-12));
         }
+    }
+
+    #[test]
+    fn any_brightness_search_errors_fit_the_brightness_within_its_range() {
+        let (np, c, items) = (16, 4, SEARCH_BLOCK + 5);
+        let (s, _, a, x) = random_search(7, np, 1, c, items);
+        let j = 3;
+        // Item j's clamped reconstruction, scaled by `f`.
+        let scaled = |f: f64| -> Vec<f64> {
+            (0..np)
+                .map(|p| {
+                    let v: f64 = (0..c).map(|k| a[k][p] * x[j * c + k] as f64).sum();
+                    f * v.max(0.0)
+                })
+                .collect()
+        };
+        // Every item rescored (clamped): at a third of the brightness the item fits exactly;
+        // at an eighth the scale stops at a quarter, twice the target (error 1).
+        for (f, want) in [(1.0 / 3.0, 0.0), (1.0 / 8.0, 1.0)] {
+            let t = scaled(f);
+            let one = search_errors_multi(&s, &[t.clone()], &a, &x, items, items, false).remove(0);
+            let any = search_errors_multi(&s, &[t.clone()], &a, &x, items, items, true).remove(0);
+            assert!((any[j] - want).abs() < 1e-6, "{f}: {}", any[j]);
+            assert!((one[j] - (1.0 / f - 1.0)).abs() < 1e-6, "{f}: {}", one[j]);
+            // Brightness 1 is one of the scales tried: never worse.
+            assert!(any.iter().zip(&one).all(|(p, q)| *p <= q + 1e-9));
+        }
+        // Through the Gram bound too (a small rescore): item j ranks first.
+        let t = scaled(0.5);
+        let any = search_errors_multi(&s, &[t], &a, &x, items, 10, true).remove(0);
+        assert_eq!(smallest(&any, 1), vec![j]);
     }
 
     #[test]
