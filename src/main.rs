@@ -182,9 +182,9 @@ enum Cmd {
         /// solver widens one last geometry solve, with the best material found
         #[arg(long, default_value_t = biscale::solve::geometry::WIDEN)]
         widen: usize,
-        /// General solver: starts (plus two from the first start's material sharpened, lobe
-        /// widths x 0.4 and x 0.25, each run only when no start before it came within
-        /// --stop-below) and iterations per start.
+        /// General solver: starts (plus three from the first start's material sharpened, lobe
+        /// widths x 0.7, x 0.4 and x 0.25, each run only while nothing found is within 7 %, or
+        /// always with --stop-below 0) and iterations per start.
         #[arg(long, default_value_t = 5)]
         starts: usize,
         #[arg(long, default_value_t = 4, value_parser = in_range::<usize>(1, 1000))]
@@ -258,9 +258,9 @@ enum Cmd {
         widen: usize,
         #[arg(long, default_value_t = 3, value_parser = in_range::<usize>(1, 1000))]
         k: usize,
-        /// General solver: starts (plus two from the first start's material sharpened, lobe
-        /// widths x 0.4 and x 0.25, each run only when no start before it came within
-        /// --stop-below).
+        /// General solver: starts (plus three from the first start's material sharpened, lobe
+        /// widths x 0.7, x 0.4 and x 0.25, each run only while nothing found is within 7 %, or
+        /// always with --stop-below 0).
         #[arg(long, default_value_t = 3)]
         starts: usize,
         /// General solver: geometries of each geometry solve that get a material solve.

@@ -570,6 +570,24 @@ fn general_solver_adds_sharper_starts_only_when_no_start_succeeds() {
         "{:?}",
         st.notes
     );
+    // Below any error reached, the stopping rule never ends the search, but a combination
+    // within the visually equivalent bound still ends the sharper starts, and the log says so.
+    let g = biscale::solve::general::GeneralOptions {
+        stop_below: 1e-12,
+        joint_pool: 0,
+        start_material: Some(rough),
+        ..g.clone()
+    };
+    let (found, st) = biscale::solve::general::explore(&lib, &look, &opt, &g).unwrap();
+    let sharper = st.notes.iter().filter(|n| n.contains("sharpened")).count();
+    let ended = st.notes.iter().any(|n| n.starts_with("no sharper starts"));
+    // This look is within the bound after the asked starts: no sharper start runs.
+    assert!(
+        found[0].error <= biscale::solve::general::SHARPEN_ABOVE,
+        "{}",
+        found[0].error
+    );
+    assert!(ended && sharper == 0, "{:?}", st.notes);
 }
 
 /// The stopping rule: a combination within `stop_below` after the joint search ends the
