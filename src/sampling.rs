@@ -262,7 +262,10 @@ mod tests {
         };
         let t = [1.0, 2.0, 0.5];
         let f = |k: f64| t.iter().map(|v| k * v).collect::<Vec<_>>();
-        assert_eq!(s.rel_error_scaled(&t, &f(2.0), false), s.rel_error(&t, &f(2.0)));
+        assert_eq!(
+            s.rel_error_scaled(&t, &f(2.0), false),
+            s.rel_error(&t, &f(2.0))
+        );
         assert!((s.rel_error(&t, &f(2.0)) - 1.0).abs() < 1e-12);
         // Twice as bright: fitted exactly; ten times: the scale stops at 4 (2.5x the target).
         assert!(s.rel_error_scaled(&t, &f(2.0), true) < 1e-7);

@@ -280,12 +280,14 @@ pub fn solve_with(
                     })
             })
             .collect::<Result<_>>()?;
-        let binned = search_errors_multi(shared, &targets, &b, xs, items.len(), rescore, anyb).concat();
+        let binned =
+            search_errors_multi(shared, &targets, &b, xs, items.len(), rescore, anyb).concat();
         rankings.push(smallest(&binned, depth));
     }
     // The third: the representatives' light-lobe values with the weights refitted to them.
     if let (ItemData::Lobes { .. }, Some(xl)) = (&data, xl) {
-        let refit = search_errors_multi(shared, &targets, &a, xl, items.len(), rescore, anyb).concat();
+        let refit =
+            search_errors_multi(shared, &targets, &a, xl, items.len(), rescore, anyb).concat();
         rankings.push(smallest(&refit, depth));
     }
     let refs: Vec<&[usize]> = rankings.iter().map(|r| r.as_slice()).collect();

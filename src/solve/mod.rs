@@ -369,9 +369,17 @@ pub fn search_errors(
     items: usize,
     rescore: usize,
 ) -> Vec<f64> {
-    search_errors_multi(s, std::slice::from_ref(&t.to_vec()), a, x, items, rescore, false)
-        .pop()
-        .unwrap_or_default()
+    search_errors_multi(
+        s,
+        std::slice::from_ref(&t.to_vec()),
+        a,
+        x,
+        items,
+        rescore,
+        false,
+    )
+    .pop()
+    .unwrap_or_default()
 }
 
 /// [`search_errors`] for several targets at the same samples (one per rotation of the target,
