@@ -1065,3 +1065,44 @@ fn any_brightness_geometry_solve_ranks_by_shape_and_reports_the_materials_own_er
             .all(|w| w[0].rerank_error <= w[1].rerank_error));
     }
 }
+
+#[test]
+fn exhaustive_geometry_scan_tries_every_rotation_the_solver_tries() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    // An anisotropic surface (a v-groove along one axis) under a glossy material, its look
+    // turned by 90° about the normal: at rotation 0 the grooves run the wrong way.
+    let (g, m) = (1, 2);
+    let look0 = combo(&lib, g, m);
+    let turned = Look::from_fn(
+        "turned",
+        move |wi, wo| {
+            let q = std::f64::consts::FRAC_PI_2;
+            look0.fbar(
+                biscale::frame::rotate_z(wi, q),
+                biscale::frame::rotate_z(wo, q),
+            )
+        },
+        None,
+    );
+    let scan = |psi: usize| {
+        let opt = SolveOptions {
+            psi,
+            ..Default::default()
+        };
+        biscale::validate::exhaustive_geometry(&lib, &turned, m, &opt).unwrap()
+    };
+    let (one, four) = (scan(1), scan(4));
+    assert_eq!(one.psi_deg, 0.0);
+    assert_eq!(four.geometry, Some(g), "{four:?}");
+    assert!(
+        (four.psi_deg - 90.0).abs() < 1e-9 || (four.psi_deg - 270.0).abs() < 1e-9,
+        "{four:?}"
+    );
+    // The scan at rotation 0 alone does worse.
+    assert!(
+        four.error < 0.5 * one.error,
+        "{} vs {}",
+        four.error,
+        one.error
+    );
+}
