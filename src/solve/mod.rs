@@ -152,11 +152,14 @@ pub struct Candidate {
     pub colour_shift: Option<usize>,
     /// Average RGB colour `lambda` of the candidate material with its shift.
     pub colour: [f64; 3],
-    /// Error from the compressed search (stage 1).
+    /// Error from the compressed search (stage 1); at the best brightness in a geometry solve
+    /// with [`SolveOptions::any_brightness`].
     pub search_error: f64,
-    /// Error from the item's own library data (stage 2).
+    /// Error from the item's own library data (stage 2); at the best brightness in a geometry
+    /// solve with [`SolveOptions::any_brightness`], whose candidates are in this order.
     pub rerank_error: f64,
-    /// Error from the final evaluator (stage 3); candidates are sorted by it.
+    /// Error from the final evaluator (stage 3), always at the material's own brightness;
+    /// candidates are sorted by it (but see `rerank_error`).
     pub error: f64,
     pub evaluated_by: Final,
 }
