@@ -78,6 +78,20 @@ impl ItemData {
     }
 }
 
+/// A pooled (geometry, rotation) after stage 2.
+#[derive(Debug, Clone, Copy)]
+struct Reranked {
+    /// The error it is ranked by: at the best brightness with
+    /// [`SolveOptions::any_brightness`], else `own`.
+    rank: f64,
+    /// Stage 1's error.
+    search: f64,
+    geometry: usize,
+    rotation: usize,
+    /// The error at the material's own brightness.
+    own: f64,
+}
+
 /// Stage 2 narrows a pool larger than this by coarse passes, each keeping its best quarter
 /// (at least this many), and evaluates what is left at every sample.
 pub const COARSE_KEEP: usize = 32;
@@ -301,8 +315,7 @@ pub fn solve_with(
     // `step`-th sample and keeps its best quarter), until at most COARSE_KEEP are left for
     // every sample — or `k` per rotation: the pool holds (geometry, rotation) pairs and the
     // answers are `k` different geometries, which up to `k × psi` pairs may take.
-    // `(ranking error, search error, geometry, rotation, error at the material's brightness)`.
-    let rerank = |pool: &[usize]| -> Result<Vec<(f64, f64, usize, usize, f64)>> {
+    let rerank = |pool: &[usize]| -> Result<Vec<Reranked>> {
         let pool = match &data {
             ItemData::Lobes { lobes, pf } => narrow(
                 pool.to_vec(),
@@ -335,12 +348,17 @@ pub fn solve_with(
                 } else {
                     own
                 };
-                Ok((ranked, se, j, ri, own))
+                Ok(Reranked {
+                    rank: ranked,
+                    search: se,
+                    geometry: j,
+                    rotation: ri,
+                    own,
+                })
             })
             .collect()
     };
-    let best_of =
-        |r: &[(f64, f64, usize, usize, f64)]| r.iter().map(|x| x.0).fold(f64::INFINITY, f64::min);
+    let best_of = |r: &[Reranked]| r.iter().map(|x| x.rank).fold(f64::INFINITY, f64::min);
     let extent =
         |e: usize| &order[(e * pool_size).min(order.len())..((e + 1) * pool_size).min(order.len())];
     let mut reranked = rerank(extent(0))?;
@@ -377,10 +395,10 @@ pub fn solve_with(
             100.0 * WIDEN_GAIN
         ));
     }
-    reranked.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.2.cmp(&b.2)));
+    reranked.sort_by(|a, b| a.rank.total_cmp(&b.rank).then(a.geometry.cmp(&b.geometry)));
     // Each geometry once, at its best rotation: the K answers are K different geometries.
     let mut seen = std::collections::HashSet::new();
-    reranked.retain(|r| seen.insert(r.2));
+    reranked.retain(|r| seen.insert(r.geometry));
     reranked.truncate(opt.k.max(1));
     stats.rerank_seconds = t1.elapsed().as_secs_f64();
     // Stage 3: the final evaluator.
@@ -388,41 +406,50 @@ pub fn solve_with(
     let colour = crate::library::items::average_colour(material);
     let mut out: Vec<Candidate> = reranked
         .iter()
-        .map(|&(re, se, j, ri, own)| {
-            let r = &rots[ri];
-            let error = match opt.final_eval {
-                Final::Library => own,
-                Final::Fast => {
-                    let hf = library_heightfield(&items[j].spec)?;
-                    let pf = match &data {
-                        ItemData::Lobes { pf, .. } => pf.clone(),
-                        ItemData::Binned { .. } => {
-                            material_prefiltered(lib, material, material_index)?
-                        }
-                    };
-                    r.samples
-                        .rel_error(&r.target, &fast_values(&bvndf_of(&hf), &pf, &r.samples))
-                }
-                Final::Exact => {
-                    let hf = library_heightfield(&items[j].spec)?;
-                    let v = exact_values(&hf, &[material], &r.samples, opt.exact_samples).remove(0);
-                    r.samples.rel_error(&r.target, &v)
-                }
-            };
-            Ok(Candidate {
-                geometry: Some(j),
-                geometry_spec: items[j].spec.clone(),
-                material: material_index,
-                material_spec: material_label.to_string(),
-                psi_deg: r.psi.to_degrees(),
-                colour_shift: None,
-                colour,
-                search_error: se,
-                rerank_error: re,
-                error,
-                evaluated_by: opt.final_eval,
-            })
-        })
+        .map(
+            |&Reranked {
+                 rank: re,
+                 search: se,
+                 geometry: j,
+                 rotation: ri,
+                 own,
+             }| {
+                let r = &rots[ri];
+                let error = match opt.final_eval {
+                    Final::Library => own,
+                    Final::Fast => {
+                        let hf = library_heightfield(&items[j].spec)?;
+                        let pf = match &data {
+                            ItemData::Lobes { pf, .. } => pf.clone(),
+                            ItemData::Binned { .. } => {
+                                material_prefiltered(lib, material, material_index)?
+                            }
+                        };
+                        r.samples
+                            .rel_error(&r.target, &fast_values(&bvndf_of(&hf), &pf, &r.samples))
+                    }
+                    Final::Exact => {
+                        let hf = library_heightfield(&items[j].spec)?;
+                        let v =
+                            exact_values(&hf, &[material], &r.samples, opt.exact_samples).remove(0);
+                        r.samples.rel_error(&r.target, &v)
+                    }
+                };
+                Ok(Candidate {
+                    geometry: Some(j),
+                    geometry_spec: items[j].spec.clone(),
+                    material: material_index,
+                    material_spec: material_label.to_string(),
+                    psi_deg: r.psi.to_degrees(),
+                    colour_shift: None,
+                    colour,
+                    search_error: se,
+                    rerank_error: re,
+                    error,
+                    evaluated_by: opt.final_eval,
+                })
+            },
+        )
         .collect::<Result<_>>()?;
     // At the best brightness the order is stage 2's: the errors at the material's own
     // brightness are the answers' errors, not their ranking.
