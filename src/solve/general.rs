@@ -187,6 +187,19 @@ pub fn explore(
             rep_pairs.as_ref(),
         )
     };
+    // A material solve on a candidate's geometry at its rotation.
+    let material_solve = |c: &Candidate| -> Result<SolveResult> {
+        let hf = library_heightfield(&c.geometry_spec)?;
+        super::material::solve(
+            lib,
+            look,
+            &hf,
+            &c.geometry_spec,
+            c.geometry,
+            c.psi_deg,
+            &inner,
+        )
+    };
     let mut s = 0;
     loop {
         if stopped {
@@ -262,16 +275,7 @@ pub fn explore(
                 let j = cand.geometry.unwrap_or(0);
                 let key = (j, cand.psi_deg.to_bits());
                 if let Entry::Vacant(slot) = material_solves.entry(key) {
-                    let hf = library_heightfield(&cand.geometry_spec)?;
-                    let mr = super::material::solve(
-                        lib,
-                        look,
-                        &hf,
-                        &cand.geometry_spec,
-                        Some(j),
-                        cand.psi_deg,
-                        &inner,
-                    )?;
+                    let mr = material_solve(cand)?;
                     accumulate(&mut stats, &mr.stats);
                     seen.extend(mr.candidates.iter().cloned());
                     slot.insert(mr.candidates);
@@ -332,16 +336,7 @@ pub fn explore(
         if let Some(c) = gr.candidates.first() {
             let j = c.geometry.unwrap_or(0);
             if !material_solves.contains_key(&(j, c.psi_deg.to_bits())) {
-                let hf = library_heightfield(&c.geometry_spec)?;
-                let mr = super::material::solve(
-                    lib,
-                    look,
-                    &hf,
-                    &c.geometry_spec,
-                    Some(j),
-                    c.psi_deg,
-                    &inner,
-                )?;
+                let mr = material_solve(c)?;
                 accumulate(&mut stats, &mr.stats);
                 seen.extend(mr.candidates);
             }
