@@ -1160,7 +1160,11 @@ mod tests {
                 // Shadows from the hit and from a random surface point.
                 let light = v.direction(crate::frame::dir_from_deg(
                     r.range(0.0, 80.0),
-                    if i % 4 == 0 { 90.0 } else { r.range(0.0, 360.0) },
+                    if i % 4 == 0 {
+                        90.0
+                    } else {
+                        r.range(0.0, 360.0)
+                    },
                 ));
                 let (x, y) = (r.range(0.0, n), r.range(0.0, n));
                 for (px, py, pz) in [(b.x, b.y, b.z), (x, y, hf.surface_height(x, y))] {
