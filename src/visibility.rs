@@ -381,22 +381,25 @@ impl<'a> Visibility<'a> {
         let period = Some(al.back.period).filter(|p| p.is_finite());
         let mut line_max = f64::NEG_INFINITY;
         let mut jumped = false;
-        let hit = |walk: &CellWalk, s0: f64, g0: f64, s1: f64, g1: f64| {
+        // Where the ray passes the surface between two breakpoints (`g0 < 0 <= g1`), in the
+        // period like the start (the hit may lie far from it).
+        let crossing = |s0: f64, g0: f64, s1: f64, g1: f64| {
             let s = if g1 > g0 {
                 s0 + (s1 - s0) * (-g0 / (g1 - g0)).clamp(0.0, 1.0)
             } else {
                 s1
             };
-            let (fx, fy) = walk.local(0.5 * (s0 + s1));
-            let tri = if fx >= fy { 0 } else { 1 };
-            // In the period, like the start (the hit may lie far from it).
-            let p = Vec3::new(
+            Vec3::new(
                 (qx - s * dx).rem_euclid(wp),
                 (qy - s * dy).rem_euclid(hp),
                 zs - m * s,
-            );
+            )
+        };
+        let hit = |walk: &CellWalk, s0: f64, g0: f64, s1: f64, g1: f64| {
+            let (fx, fy) = walk.local(0.5 * (s0 + s1));
+            let tri = if fx >= fy { 0 } else { 1 };
             (
-                p,
+                crossing(s0, g0, s1, g1),
                 2 * (walk.iy as usize * self.w as usize + walk.ix as usize) + tri,
             )
         };
@@ -405,20 +408,10 @@ impl<'a> Visibility<'a> {
         }
         if short {
             if let Some(((s0, g0), (s1, g1))) = self.first_hit_short(qx, qy, prev_g, &al.back, m) {
-                // As `hit` does, with the facet of the cell the segment between them crosses.
-                let s = if g1 > g0 {
-                    s0 + (s1 - s0) * (-g0 / (g1 - g0)).clamp(0.0, 1.0)
-                } else {
-                    s1
-                };
+                // The facet is the one under the segment between the two breakpoints.
                 let mid = 0.5 * (s0 + s1);
-                let (xm, ym) = (qx - mid * dx, qy - mid * dy);
-                let p = Vec3::new(
-                    (qx - s * dx).rem_euclid(wp),
-                    (qy - s * dy).rem_euclid(hp),
-                    zs - m * s,
-                );
-                return (p, self.facet_at(xm, ym));
+                let facet = self.facet_at(qx - mid * dx, qy - mid * dy);
+                return (crossing(s0, g0, s1, g1), facet);
             }
         }
         loop {

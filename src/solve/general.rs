@@ -315,7 +315,7 @@ pub fn explore(
         let bound = if round == 0 {
             super::geometry::WIDEN_ABOVE
         } else {
-            SHARPEN_ABOVE
+            super::job::MATCH_BOUND
         };
         let best = seen.iter().min_by(|a, b| a.error.total_cmp(&b.error));
         let Some(m) = best
