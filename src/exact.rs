@@ -13,15 +13,30 @@
 //! projected area, which a sampling of the surface itself would miss. This is the reference every
 //! fast path is measured against and the re-ranking step of the solvers.
 //!
+//! A facet whose vertices and edge midpoints are all visible from both directions is seen and lit
+//! whole, and takes its exact share `A_t (n_t·wo)+ / (A_base cos(theta_o))` instead of its count
+//! of rays (`ExactEvaluator::shade`): under a glossy lobe narrower than the change of normal from
+//! one facet to the next, a few facets carry the sum, and the scatter of their counts (about a
+//! ray in two at `s = 2`) was the method's noise. Facets crossed by a shadow or occlusion edge
+//! keep their counts.
+//!
 //! [`ExactEvaluator::visible_projected_area`] checks the two visibility codes against each other
 //! on that identity: every first hit must also pass the shadow march towards the viewer.
 
 use crate::frame::{DirPair, Vec3};
 use crate::heightfield::{Facet, Heightfield};
 use crate::material::Material;
-use crate::visibility::Visibility;
+use crate::visibility::{Direction, Visibility};
 use rayon::prelude::*;
 use std::collections::HashMap;
+
+/// What the view rays from one direction see ([`ExactEvaluator::view`]).
+struct View {
+    /// First hits `(facet, point)`, sorted by facet.
+    hits: Vec<(u32, Vec3)>,
+    /// Per facet, whether it is seen whole ([`ExactEvaluator::whole`]).
+    whole: Vec<bool>,
+}
 
 /// The exact evaluator for one heightfield.
 pub struct ExactEvaluator<'a> {
@@ -76,35 +91,109 @@ impl<'a> ExactEvaluator<'a> {
         hits
     }
 
-    /// `Σ_t f_r(n_t) (n_t·wi)` over the hits lit from `wi`, divided by the ray count, for every
-    /// material at once (the shadow marches are shared).
-    fn shade(&self, mats: &[&Material], hits: &[(u32, Vec3)], wi: Vec3, wo: Vec3) -> Vec<f64> {
+    /// Visibility towards `dir` of every vertex (`[0]`) and of the midpoints of the edges
+    /// leaving it along +x (`[1]`), +y (`[2]`) and the diagonal (`[3]`), row-major: each point
+    /// is tested once and shared by the facets around it ([`Self::whole`]).
+    fn boundary_visibility(&self, dir: &Direction) -> Vec<[bool; 4]> {
+        let hf = self.vis.heightfield();
+        (0..hf.height())
+            .into_par_iter()
+            .flat_map_iter(|y| {
+                (0..hf.width()).map(move |x| {
+                    let (xi, yi) = (x as i64, y as i64);
+                    let (xf, yf) = (x as f64, y as f64);
+                    let z = hf.at(xi, yi);
+                    [
+                        Vec3::new(xf, yf, z),
+                        Vec3::new(xf + 0.5, yf, 0.5 * (z + hf.at(xi + 1, yi))),
+                        Vec3::new(xf, yf + 0.5, 0.5 * (z + hf.at(xi, yi + 1))),
+                        Vec3::new(xf + 0.5, yf + 0.5, 0.5 * (z + hf.at(xi + 1, yi + 1))),
+                    ]
+                    .map(|p| self.vis.visible_dir(p.x, p.y, p.z, dir))
+                })
+            })
+            .collect()
+    }
+
+    /// Whether facet `t`'s three vertices and three edge midpoints are all visible in
+    /// `boundary` ([`Self::boundary_visibility`]).
+    fn whole(&self, t: usize, boundary: &[[bool; 4]]) -> bool {
+        let hf = self.vis.heightfield();
+        let (w, h) = (hf.width(), hf.height());
+        let cell = t / 2;
+        let (x, y) = (cell % w, cell / w);
+        let at = |x: usize, y: usize| &boundary[(y % h) * w + x % w];
+        let (v00, v10, v01, v11) = (at(x, y), at(x + 1, y), at(x, y + 1), at(x + 1, y + 1));
+        // Lower-right (00, 10, 11): edges 00–10, 10–11, 00–11; upper-left (00, 11, 01): edges
+        // 00–11, 01–11, 00–01.
+        if t.is_multiple_of(2) {
+            v00[0] && v10[0] && v11[0] && v00[1] && v10[2] && v00[3]
+        } else {
+            v00[0] && v11[0] && v01[0] && v00[3] && v01[1] && v00[2]
+        }
+    }
+
+    /// What the view rays from `wo` see: their first hits, and which facets are seen whole.
+    fn view(&self, wo: Vec3) -> View {
+        let hits = self.view_hits(wo);
+        let boundary = self.boundary_visibility(&self.vis.direction(wo));
+        let whole = (0..self.facets.len())
+            .map(|t| self.facets[t].n.dot(wo) > 0.0 && self.whole(t, &boundary))
+            .collect();
+        View { hits, whole }
+    }
+
+    /// `Σ_t f_r(n_t) (n_t·wi) V_t` over the facets seen from `wo`, for every material at once
+    /// (the shadow marches are shared), `V_t` the facet's share of the view rays that see a point
+    /// of it lit from `wi`.
+    ///
+    /// A facet **seen whole** from `wo` and **lit whole** from `wi` (its three vertices and three
+    /// edge midpoints all visible from both, [`Self::whole`]) takes its exact share,
+    /// `A_t (n_t·wo)+ / (A_base cos(theta_o))`. What hides or shadows part of a facet lies in
+    /// front of it, outside it, so the hidden part reaches the facet's boundary; only an occluder
+    /// so thin that its shadow enters between the six points escapes the test. Any other facet
+    /// counts its lit hits, over the rays. On a smooth surface the counts scatter by about a ray
+    /// per facet (two rays per facet at `s = 2`); neighbours' errors cancel under a broad lobe,
+    /// but under a glossy lobe narrower than the change of normal between neighbouring facets a
+    /// few facets carry the whole sum, and that scatter was the method's noise. Where a shadow
+    /// or an occlusion edge crosses the facets, the counts are kept: their stratified rays
+    /// integrate the edge far better than a few points per facet would.
+    fn shade(&self, mats: &[&Material], view: &View, wi: Vec3, wo: Vec3) -> Vec<f64> {
+        let hf = self.vis.heightfield();
         let mut sum = vec![0.0; mats.len()];
         let dir = self.vis.direction(wi);
-        let mut k = 0;
-        while k < hits.len() {
-            let t = hits[k].0;
-            let mut end = k;
-            while end < hits.len() && hits[end].0 == t {
-                end += 1;
+        let lit_whole = self.boundary_visibility(&dir);
+        let hits = &view.hits;
+        let (inv, scale) = (
+            1.0 / hits.len().max(1) as f64,
+            1.0 / (hf.base_area() * wo.z),
+        );
+        let mut h = 0;
+        for (t, f) in self.facets.iter().enumerate() {
+            let h0 = h;
+            while h < hits.len() && hits[h].0 as usize == t {
+                h += 1;
             }
-            let f = &self.facets[t as usize];
             let ci = f.n.dot(wi);
-            if ci > 0.0 {
-                let lit = hits[k..end]
+            if ci <= 0.0 || (h == h0 && !view.whole[t]) {
+                continue;
+            }
+            let weight = if view.whole[t] && self.whole(t, &lit_whole) {
+                f.area * f.n.dot(wo) * scale
+            } else {
+                let lit = hits[h0..h]
                     .iter()
                     .filter(|(_, p)| self.vis.visible_dir(p.x, p.y, p.z, &dir))
                     .count();
-                if lit > 0 {
-                    for (s, m) in sum.iter_mut().zip(mats) {
-                        *s += lit as f64 * ci * m.eval(f.n, wi, wo);
-                    }
+                lit as f64 * inv
+            };
+            if weight > 0.0 {
+                for (s, m) in sum.iter_mut().zip(mats) {
+                    *s += weight * ci * m.eval(f.n, wi, wo);
                 }
             }
-            k = end;
         }
-        let inv = 1.0 / hits.len().max(1) as f64;
-        sum.into_iter().map(|s| s * inv).collect()
+        sum
     }
 
     pub fn facets(&self) -> &[Facet] {
@@ -201,12 +290,12 @@ impl<'a> ExactEvaluator<'a> {
                 if wo.z <= 0.0 {
                     return idx.iter().map(|&k| (k, vec![0.0; mats.len()])).collect();
                 }
-                let hits = self.view_hits(wo);
+                let view = self.view(wo);
                 idx.iter()
                     .map(|&k| {
                         let wi = pairs[k].wi;
                         let v = if wi.z > 0.0 {
-                            self.shade(mats, &hits, wi, wo)
+                            self.shade(mats, &view, wi, wo)
                         } else {
                             vec![0.0; mats.len()]
                         };
@@ -256,5 +345,33 @@ mod tests {
             let want = m.eval(Vec3::Z, p.wi, p.wo) * p.wi.z;
             assert!((g / want - 1.0).abs() < 1e-9, "{g} {want}");
         }
+    }
+
+    /// A sharp lobe on a rough surface: a few facets carry the sum. With the facets seen and lit
+    /// whole taking their exact shares, 2 × 2 rays per cell come within 2.1 % (relative RMS) of
+    /// 8 × 8 here; with every facet counting its rays they were 4.9 % off (`biscale forward
+    /// --geometry 'fbm:n=32,amplitude=1.5,seed=4' --material ggx:alpha=0.03 --method exact
+    /// --exact-samples 2|8`, before and after, docs/forward-model.md).
+    #[test]
+    fn whole_facets_take_their_exact_share() {
+        use crate::generators::parse_generator;
+        use crate::pairs::default_pairs;
+        let hf = parse_generator("fbm:n=32,amplitude=1.5,seed=4")
+            .unwrap()
+            .build()
+            .unwrap();
+        let m = parse_material("ggx:alpha=0.03").unwrap();
+        let pairs: Vec<DirPair> = default_pairs(70)
+            .iter()
+            .filter(|p| p.theta_i <= 85.0 && p.theta_o <= 85.0)
+            .map(|p| p.dirs())
+            .collect();
+        let coarse = ExactEvaluator::new(&hf, 2).fbar(&m, &pairs);
+        let fine = ExactEvaluator::new(&hf, 8).fbar(&m, &pairs);
+        let (num, den) = coarse.iter().zip(&fine).fold((0.0, 0.0), |(n, d), (c, f)| {
+            (n + (c - f) * (c - f), d + f * f)
+        });
+        let err = (num / den).sqrt();
+        assert!(err < 0.03, "relative RMS {err}");
     }
 }
