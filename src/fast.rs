@@ -42,15 +42,25 @@ pub const FACET_WIDTH: f64 = 0.06;
 /// table's part from the lobes, plus the sharp lobes summed over the curved clusters' facets
 /// ([`CompactBvndf::sharp_fbar`]). For any other table, the same as [`fbar`].
 pub fn fbar_with_facets(geo: &CompactBvndf, mat: &Prefiltered, pairs: &[DirPair]) -> Vec<f64> {
-    let mut out = fbar_by(mat, pairs, None, geo.clusters(), |_, p, out| {
-        geo.lobes(p.wi, p.wo, mat.resolves_shape(), out)
-    });
-    if let Some((sharp, radius)) = mat.sharp() {
-        for (v, p) in out.iter_mut().zip(pairs) {
-            *v = clean(*v + geo.sharp_fbar(p.wi, p.wo, sharp, radius));
-        }
+    let mut scratch = Vec::with_capacity(geo.clusters());
+    pairs
+        .iter()
+        .map(|p| fbar_one_with_facets(geo, mat, p, &mut scratch))
+        .collect()
+}
+
+/// [`fbar_with_facets`] at one pair, reusing `scratch` for the lobes.
+pub fn fbar_one_with_facets(
+    geo: &CompactBvndf,
+    mat: &Prefiltered,
+    p: &DirPair,
+    scratch: &mut Vec<(f64, Vmf)>,
+) -> f64 {
+    let v = fbar_one(geo, mat, p, scratch);
+    match mat.sharp() {
+        Some((sharp, radius)) => clean(v + geo.sharp_fbar(p.wi, p.wo, sharp, radius)),
+        None => v,
     }
-    out
 }
 
 /// `fbar` at every pair (a table built with [`Prefiltered::build`]; for one built with

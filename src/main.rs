@@ -157,6 +157,12 @@ enum Cmd {
         /// Target colour r,g,b (average fbar per channel); default: the target material's own.
         #[arg(long)]
         colour: Option<String>,
+        /// Make the target a bi-scale combination: this geometry (procedural spec or heightmap,
+        /// read as --fix-geometry) under the --target material, by the fast forward model (the
+        /// values of `biscale forward --geometry G --material M`); for validation. Only
+        /// --brightness and --colour edit it.
+        #[arg(long)]
+        target_geometry: Option<String>,
         /// Fix the material (spec) and solve for the geometry.
         #[arg(long)]
         fix_material: Option<String>,
@@ -549,6 +555,7 @@ fn main() -> ExitCode {
             contrast,
             blur,
             colour,
+            target_geometry,
             fix_material,
             fix_geometry,
             psi,
@@ -586,6 +593,7 @@ fn main() -> ExitCode {
                         blur,
                     },
                     colour,
+                    target_geometry,
                     fix_material,
                     fix_geometry,
                     options: SolveOptions {

@@ -108,17 +108,11 @@ fn combo_look(lib: &Library, g: usize, m: usize) -> Result<Look> {
         &crate::solve::geometry::prefilter_for(lib),
     ));
     let colour = crate::library::items::average_colour(&mat);
-    Ok(Look::from_fn(
+    Ok(Look::from_combination(
         &format!("{} with {}", gi[g].spec, mi[m].spec),
-        move |wi: Vec3, wo: Vec3| {
-            let mut scratch = Vec::with_capacity(geo.clusters);
-            fbar_one(
-                geo.as_ref(),
-                &pf,
-                &crate::frame::DirPair { wi, wo },
-                &mut scratch,
-            )
-        },
+        geo,
+        pf,
+        1.0,
         Some(colour),
     ))
 }

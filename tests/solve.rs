@@ -10,7 +10,7 @@ use biscale::material::parse_material;
 use biscale::solve::{Final, Look, SolveOptions};
 use common::TestDir;
 use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 
 /// The `tiny` library, built once per test process and shared by its tests (in cargo's
 /// `target/tmp`, see [`common::shared_dir`]).
@@ -44,14 +44,7 @@ fn combo(lib: &Library, g: usize, m: usize) -> Look {
     let mat = parse_material(&mi[m].spec).unwrap();
     let pf =
         biscale::prefilter::Prefiltered::build(&mat, &biscale::solve::geometry::prefilter_for(lib));
-    Look::from_fn(
-        "combo",
-        move |wi, wo| {
-            let mut s = Vec::new();
-            biscale::fast::fbar_one(&geo, &pf, &biscale::frame::DirPair { wi, wo }, &mut s)
-        },
-        None,
-    )
+    Look::from_combination("combo", Arc::new(geo), Arc::new(pf), 1.0, None)
 }
 
 #[test]
@@ -1105,4 +1098,53 @@ fn exhaustive_geometry_scan_tries_every_rotation_the_solver_tries() {
         four.error,
         one.error
     );
+}
+
+/// `solve --target M --target-geometry G`: the look is `biscale forward`'s fast values of (G, M)
+/// exactly, solving it back with M fixed finds G, and the edits a combination cannot take are
+/// refused by name.
+#[test]
+fn a_combination_target_is_forwards_look_and_solves_back_to_its_geometry() {
+    use biscale::solve::job::combination_look;
+    use biscale::solve::look::Edits;
+    let lib = Library::open(&tiny_library()).unwrap();
+    let gi = lib.geometry_items().unwrap();
+    let g = 10;
+    let mat = "ggx:alpha=0.3,f0=0.9+lambert:albedo=0.2";
+    let quiet = Progress { quiet: true };
+    let look = combination_look(mat, &gi[g].spec, Edits::default(), None, &quiet).unwrap();
+    let fwd = biscale::forward::run(&biscale::forward::ForwardJob {
+        geometry: gi[g].spec.clone(),
+        material: mat.into(),
+        quiet: true,
+        ..Default::default()
+    })
+    .unwrap();
+    for (p, v) in fwd.pairs.iter().zip(&fwd.fbar) {
+        let d = p.dirs();
+        assert_eq!(look.fbar(d.wi, d.wo), *v, "{p:?}");
+    }
+    let opt = SolveOptions {
+        k: 3,
+        psi: 1,
+        final_eval: Final::Fast,
+        ..Default::default()
+    };
+    let m = parse_material(mat).unwrap();
+    let r = biscale::solve::geometry::solve(&lib, &look, &m, mat, None, &opt).unwrap();
+    let best = &r.candidates[0];
+    assert_eq!(best.geometry, Some(g), "{:?}", r.candidates);
+    assert!(best.error < 0.07, "{:?}", best);
+
+    let contrast = Edits {
+        contrast: 1.5,
+        ..Edits::default()
+    };
+    let e = combination_look(mat, &gi[g].spec, contrast, None, &quiet).unwrap_err();
+    assert!(e.to_string().contains("--contrast"), "{e}");
+    let e = combination_look("ward:ax=0.3,ay=0.08", &gi[g].spec, Edits::default(), None, &quiet)
+        .unwrap_err();
+    assert!(e.to_string().contains("--target"), "{e}");
+    let e = combination_look(mat, "nosuch:n=32", Edits::default(), None, &quiet).unwrap_err();
+    assert!(e.to_string().contains("--target-geometry"), "{e}");
 }

@@ -16,6 +16,9 @@ pub struct SolveJob {
     pub target: String,
     pub edits: Edits,
     pub colour: Option<[f64; 3]>,
+    /// Make the target the look of a bi-scale combination: this geometry (a procedural spec or
+    /// heightmap, read as `fix_geometry`) under the `target` material, by the fast forward model.
+    pub target_geometry: Option<String>,
     /// Fix the material (any material spec); solve for the geometry.
     pub fix_material: Option<String>,
     /// Fix the geometry (a procedural spec or heightmap); solve for the material.
@@ -94,6 +97,50 @@ impl Fixed {
     }
 }
 
+/// The look of geometry `geometry` (a procedural spec or heightmap, 10 mm period, heights as
+/// stored, as `--fix-geometry` reads it) under material `material`, by the fast forward model
+/// with `biscale forward`'s default settings (the same values as `biscale forward --geometry G
+/// --material M`), with a brightness edit; the other edits of Sec. 7 act on a BRDF target only.
+pub fn combination_look(
+    material: &str,
+    geometry: &str,
+    edits: Edits,
+    colour: Option<[f64; 3]>,
+    progress: &Progress,
+) -> Result<Look> {
+    if edits.contrast != 1.0 || edits.blur != [1.0, 1.0] {
+        return Err(Error::new(
+            "--contrast / --blur",
+            "act on a BRDF target; with --target-geometry only --brightness and --colour apply",
+        ));
+    }
+    let mat = parse_material(material)
+        .map_err(|e| e.within("--target (with --target-geometry, a small-scale material)"))?;
+    let hf = crate::heightmap_io::resolve_geometry(geometry, 10.0, 1.0)
+        .map_err(|e| e.within("--target-geometry"))?;
+    let t = std::time::Instant::now();
+    let geo = crate::bvndf::CompactBvndf::build(&hf, &crate::bvndf::BvndfConfig::forward());
+    let pre = crate::prefilter::Prefiltered::build_split(
+        &mat,
+        &crate::prefilter::PrefilterConfig::default(),
+        crate::fast::FACET_WIDTH,
+    );
+    progress.note(&format!(
+        "solve: target {geometry} with {material} (fast forward model) built in {:.1} s",
+        t.elapsed().as_secs_f64()
+    ));
+    let colour = colour.or_else(|| {
+        Some(crate::library::items::average_colour(&mat).map(|c| c * edits.brightness))
+    });
+    Ok(Look::from_combination(
+        &format!("{geometry} with {material}"),
+        std::sync::Arc::new(geo),
+        std::sync::Arc::new(pre),
+        edits.brightness,
+        colour,
+    ))
+}
+
 /// Open the library a job names: a directory, or the cached build of a profile.
 pub fn open_library(
     library: &Option<PathBuf>,
@@ -109,8 +156,11 @@ pub fn open_library(
 
 pub fn run(job: &SolveJob) -> Result<String> {
     let progress = Progress { quiet: job.quiet };
-    let look =
-        Look::from_spec(&job.target, job.edits, job.colour).map_err(|e| e.within("--target"))?;
+    let look = match &job.target_geometry {
+        None => Look::from_spec(&job.target, job.edits, job.colour)
+            .map_err(|e| e.within("--target"))?,
+        Some(g) => combination_look(&job.target, g, job.edits, job.colour, &progress)?,
+    };
     // What is fixed is read before the library is opened (or built): bad input fails first.
     let fixed = Fixed::read(
         job.fix_material.as_deref(),
@@ -148,7 +198,7 @@ pub fn run(job: &SolveJob) -> Result<String> {
             result: &'a SolveResult,
         }
         return serde_json::to_string_pretty(&Out {
-            target: &job.target,
+            target: &look.name,
             mode,
             library: lib.dir.display().to_string(),
             result: &result,
@@ -156,7 +206,7 @@ pub fn run(job: &SolveJob) -> Result<String> {
         .map(|s| s + "\n")
         .map_err(|e| Error::new("--json", e.to_string()));
     }
-    Ok(table(&job.target, mode, &result.candidates))
+    Ok(table(&look.name, mode, &result.candidates))
 }
 
 /// A readable table of candidates.

@@ -2,8 +2,10 @@
 //! a MERL file) with the Sec. 7 edits, or the `fbar` of a bi-scale combination (for validation),
 //! and an optional target colour.
 
+use crate::bvndf::CompactBvndf;
 use crate::error::{Error, Result};
 use crate::frame::{DirPair, Vec3};
+use crate::prefilter::Prefiltered;
 use crate::sampling::Samples;
 use crate::target::{Target, TargetBase};
 use std::sync::{Arc, Mutex};
@@ -84,6 +86,27 @@ impl Look {
             colour,
             memo: Arc::default(),
         }
+    }
+
+    /// The look of a bi-scale combination under the fast forward model: `geo`'s compact BVNDF
+    /// with the prefiltered material `pre` (split or not, [`crate::fast::fbar_with_facets`]),
+    /// times `scale` (a brightness edit).
+    pub fn from_combination(
+        name: &str,
+        geo: Arc<CompactBvndf>,
+        pre: Arc<Prefiltered>,
+        scale: f64,
+        colour: Option<[f64; 3]>,
+    ) -> Self {
+        Look::from_fn(
+            name,
+            move |wi: Vec3, wo: Vec3| {
+                let mut scratch = Vec::with_capacity(geo.clusters);
+                let p = DirPair { wi, wo };
+                scale * crate::fast::fbar_one_with_facets(&geo, &pre, &p, &mut scratch)
+            },
+            colour,
+        )
     }
 
     /// The sample set stored under `key` (drawn by `make` the first time). Drawing samples
