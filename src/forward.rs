@@ -130,7 +130,7 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
             log(
                 job.quiet,
                 format!(
-                    "exact: {} facets × {} points each, evaluated in {:.3} s",
+                    "exact: {} facets, {} view rays per cell from each end, evaluated in {:.3} s",
                     ev.facets().len(),
                     job.exact_samples * job.exact_samples,
                     t.elapsed().as_secs_f64()
