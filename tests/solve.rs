@@ -1142,8 +1142,14 @@ fn a_combination_target_is_forwards_look_and_solves_back_to_its_geometry() {
     };
     let e = combination_look(mat, &gi[g].spec, contrast, None, &quiet).unwrap_err();
     assert!(e.to_string().contains("--contrast"), "{e}");
-    let e = combination_look("ward:ax=0.3,ay=0.08", &gi[g].spec, Edits::default(), None, &quiet)
-        .unwrap_err();
+    let e = combination_look(
+        "ward:ax=0.3,ay=0.08",
+        &gi[g].spec,
+        Edits::default(),
+        None,
+        &quiet,
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("--target"), "{e}");
     let e = combination_look(mat, "nosuch:n=32", Edits::default(), None, &quiet).unwrap_err();
     assert!(e.to_string().contains("--target-geometry"), "{e}");

@@ -157,8 +157,9 @@ pub fn open_library(
 pub fn run(job: &SolveJob) -> Result<String> {
     let progress = Progress { quiet: job.quiet };
     let look = match &job.target_geometry {
-        None => Look::from_spec(&job.target, job.edits, job.colour)
-            .map_err(|e| e.within("--target"))?,
+        None => {
+            Look::from_spec(&job.target, job.edits, job.colour).map_err(|e| e.within("--target"))?
+        }
         Some(g) => combination_look(&job.target, g, job.edits, job.colour, &progress)?,
     };
     // What is fixed is read before the library is opened (or built): bad input fails first.
