@@ -156,18 +156,19 @@ pub fn open_library(
 
 pub fn run(job: &SolveJob) -> Result<String> {
     let progress = Progress { quiet: job.quiet };
+    // What is fixed is read before the target's model is built and the library is opened (or
+    // built): bad input fails first.
+    let fixed = Fixed::read(
+        job.fix_material.as_deref(),
+        job.fix_geometry.as_deref().map(|g| (g, 10.0, 1.0)),
+        ("--fix-material", "--fix-geometry"),
+    )?;
     let look = match &job.target_geometry {
         None => {
             Look::from_spec(&job.target, job.edits, job.colour).map_err(|e| e.within("--target"))?
         }
         Some(g) => combination_look(&job.target, g, job.edits, job.colour, &progress)?,
     };
-    // What is fixed is read before the library is opened (or built): bad input fails first.
-    let fixed = Fixed::read(
-        job.fix_material.as_deref(),
-        job.fix_geometry.as_deref().map(|g| (g, 10.0, 1.0)),
-        ("--fix-material", "--fix-geometry"),
-    )?;
     let lib = open_library(&job.library, &job.profile, &job.cache_dir, &progress)?;
     let (mode, result) = match (&fixed, job.veds) {
         (Fixed::Neither, Some((n, bound))) => (
