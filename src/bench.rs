@@ -317,7 +317,7 @@ pub fn accuracy(
     Ok(format!(
         "Fast vs exact evaluator (exact: {s}×{s} view rays per cell from both ends{sharp}): relative RMS error over \
          the 490 default pairs, {cases} random cases, seed {seed}; compact BVNDF: {} × {} grid, {} \
-         rays per direction (+ {} seen rays), {} clusters, {} sub-lobes; its builds took {build_s:.1} s in all \
+         rays per direction (+ {} seen rays), {} clusters, {} sub-lobes, {}; its builds took {build_s:.1} s in all \
          ({:.3} s per geometry)\n\n\
          | pairs | median | 90th percentile | max | cases ≤ 3 % |\n|---|---|---|---|---|\n{}{}\n\
          | case | geometry | material | all pairs | theta ≤ 85° |\n|---|---|---|---|---|\n{rows}",
@@ -327,6 +327,15 @@ pub fn accuracy(
         cfg.seen_rays,
         cfg.clusters,
         cfg.sub_lobes,
+        if cfg.seen_phi > cfg.n_phi {
+            format!(
+                "seen table {} azimuths × {} height bands",
+                cfg.seen_phi.div_ceil(cfg.n_phi) * cfg.n_phi,
+                cfg.seen_bands
+            )
+        } else {
+            "no seen table".to_string()
+        },
         build_s / cases as f64,
         summary("all 490 (theta to 89°)", &errs),
         summary("theta_i, theta_o ≤ 85°", &errs85),

@@ -13,6 +13,10 @@
 //!   normal `G2 wo / (wo·G1)` (moment matching: visibility that selects part of a cluster, and the
 //!   foreshortening that favours normals facing `wo` at grazing angles, both move the lobe);
 //! * `a_v(wo)` comes from the same table on the diagonal `a = b`, so a flat patch is exact;
+//! * with a fine seen table ([`crate::seen`]; `forward`'s default), each cluster's interpolated
+//!   share (not its shape) is multiplied by a factor that carries what changes between the
+//!   table's directions faster than they follow (grazing views along rows of bumps), and
+//!   `a_v(wo)` comes from the fine table;
 //! * a planar cluster (one normal: groove faces, walls) takes its analytic projected area
 //!   `A_k (n·wo)+` times its jointly visible fraction, interpolated only over the nodes it faces,
 //!   so a face turning towards `wo` between two nodes is not lost to the node it turns away from;
@@ -45,6 +49,7 @@ use crate::facetindex::FacetIndex;
 use crate::frame::{Rotation, Vec3};
 use crate::heightfield::Heightfield;
 use crate::material::Material;
+use crate::seen::{seen_moments, SeenTable};
 use crate::visibility::{ray_lattice, Visibility};
 use crate::vmf::{kappa_from_resultant, Vmf};
 use rayon::prelude::*;
@@ -64,6 +69,11 @@ pub struct BvndfConfig {
     /// View rays per grid direction for the area seen from it (first hits only, no horizon
     /// marches): a control variate for the jointly visible moments. 0 or at most `rays`: off.
     pub seen_rays: usize,
+    /// Azimuths of the fine table of the area seen from each direction ([`crate::seen`]), which
+    /// corrects the pair table's interpolation. At most `n_phi`: off.
+    pub seen_phi: usize,
+    /// Height bands of that table's model of joint visibility (1: the two ends independent).
+    pub seen_bands: usize,
 }
 
 impl Default for BvndfConfig {
@@ -75,6 +85,8 @@ impl Default for BvndfConfig {
             rays: 1024,
             sub_lobes: 16,
             seen_rays: 0,
+            seen_phi: 0,
+            seen_bands: 4,
         }
     }
 }
@@ -84,7 +96,8 @@ impl BvndfConfig {
     /// grooves: 16 polar nodes left tall sine grooves at 3.3 % up to 85°), 32 normal clusters
     /// (visibility that selects part of a rough surface's normals), 512 marched view rays and
     /// 8192 first hits per direction for the area seen from it (a control variate that removes
-    /// most of the view rays' noise on rough surfaces, `seen_rays`), for a build about 12× the
+    /// most of the view rays' noise on rough surfaces, `seen_rays`), and the fine seen table on
+    /// 128 azimuths (tall surfaces at grazing views, [`crate::seen`]), for a build about 12× the
     /// libraries' grid's (docs/forward-model.md).
     pub fn forward() -> Self {
         BvndfConfig {
@@ -93,6 +106,7 @@ impl BvndfConfig {
             clusters: 32,
             rays: 512,
             seen_rays: 8192,
+            seen_phi: 128,
             ..BvndfConfig::default()
         }
     }
@@ -133,6 +147,9 @@ pub struct CompactBvndf {
     pub facets: FacetIndex,
     /// `Σ A n` of each cluster's facets, in units of `A_base`.
     pub resultants: Vec<Vec3>,
+    /// The area of each cluster seen from each direction of a grid with more azimuths, which
+    /// rescales the pair table at both ends ([`crate::seen`]; `None` with `seen_phi` off).
+    pub seen: Option<SeenTable>,
 }
 
 /// One part of a cluster's normal distribution, from all its facets (visibility aside).
@@ -325,6 +342,27 @@ impl CompactBvndf {
         let seen_origins = (cfg.seen_rays > cfg.rays)
             .then(|| ray_lattice(hf.width(), hf.height(), cfg.seen_rays))
             .filter(|o| o.len() > origins.len());
+        // The fine grid has a whole multiple of the pair grid's azimuths, so it holds its nodes.
+        let seen_table = (cfg.seen_phi > np).then(|| {
+            // The seen rays' origins (or the marched rays'), at every direction of the table:
+            // the control variate reads its rows at the pair table's directions from it.
+            let rays = seen_origins.as_deref().unwrap_or(&origins);
+            let centroid_z: Vec<f64> = facets
+                .iter()
+                .map(|f| (f.v[0].z + f.v[1].z + f.v[2].z) / 3.0)
+                .collect();
+            SeenTable::build(
+                &vis,
+                &normals,
+                &areas,
+                &centroid_z,
+                &assign,
+                kc,
+                cfg.seen_bands,
+                DirGrid::new(cfg.n_theta, cfg.seen_phi.div_ceil(np) * np),
+                rays,
+            )
+        });
         // faces[k * n_nodes + a]: every facet of cluster k faces node a, so the part of the
         // cluster seen from b that a does not see is occlusion by other geometry only.
         let faces: Vec<bool> = if seen_origins.is_some() {
@@ -398,21 +436,11 @@ impl CompactBvndf {
                     // Control variate: jointly visible = seen from b - occluded towards a. The
                     // seen part comes from the denser first hits, the occluded part from the
                     // marched rays (their seen minus their jointly visible moments).
-                    let mut seen_big = vec![[0.0f64; STRIDE]; kc];
-                    let per_big = wb.z / big.len() as f64;
-                    for &(u, v) in big {
-                        let (_, f) = vis.first_hit_dir(u, v, &dir);
-                        let n = facets[f].n;
-                        let c = n.dot(wb);
-                        if c <= 1e-9 {
-                            continue;
-                        }
-                        let m = moments(n);
-                        let e = &mut seen_big[assign[f] as usize];
-                        for q in 0..STRIDE {
-                            e[q] += per_big / c * m[q];
-                        }
-                    }
+                    // The fine seen table's row at this node when there is one (the same rays).
+                    let seen_big = match &seen_table {
+                        Some(t) => t.moments_at(t.node_of(&grid, b)),
+                        None => seen_moments(&vis, &normals, &assign, kc, &[], 1, wb, big).0,
+                    };
                     for a in 0..=b {
                         for k in 0..kc {
                             if faces[k * n_nodes + a] && faces[k * n_nodes + b] {
@@ -468,13 +496,15 @@ impl CompactBvndf {
             shapes,
             facets,
             resultants,
+            seen: seen_table,
         }
     }
 
-    /// Bytes of the stored representation (the table, the centres, the sub-lobes and the facet
-    /// index).
+    /// Bytes of the stored representation (the table, the centres, the sub-lobes, the facet
+    /// index and the fine seen table).
     pub fn bytes(&self) -> usize {
         self.table.len() * 4
+            + self.seen.as_ref().map_or(0, SeenTable::bytes)
             + self.centres.len() * 49
             + self.shapes.iter().map(Vec::len).sum::<usize>() * std::mem::size_of::<SubLobe>()
             + self.facets.bytes()
@@ -494,11 +524,33 @@ impl CompactBvndf {
                 continue;
             }
             for c in 0..self.clusters {
-                let e = self.entry(b, b, c);
-                diag += vb * (wo.x * e[0] as f64 + wo.y * e[1] as f64 + wo.z * e[2] as f64);
+                diag += vb * self.seen_at(wo, b, c);
             }
         }
         diag
+    }
+
+    /// `w·G1` of cluster `c` on the table's diagonal at node `b`: its projected area seen from
+    /// `b`, towards `w`.
+    #[inline]
+    fn seen_at(&self, w: Vec3, b: usize, c: usize) -> f64 {
+        let e = self.entry(b, b, c);
+        w.x * e[0] as f64 + w.y * e[1] as f64 + w.z * e[2] as f64
+    }
+
+    /// The fine seen table's rescaling at the pair `(wi, wo)` (node weights `wa`, `wb`), or
+    /// `None` without one.
+    fn rescale(
+        &self,
+        wi: Vec3,
+        wo: Vec3,
+        wa: &[(usize, f64)],
+        wb: &[(usize, f64)],
+    ) -> Option<Rescale> {
+        let t = self.seen.as_ref()?;
+        let mut factor = vec![1.0; self.clusters];
+        let diag = t.rescale(&self.grid, wi, wo, wa, wb, &mut factor);
+        Some(Rescale { diag, factor })
     }
 
     /// The part of `fbar(wi, wo)` that the glossy lobes of `sharp` (too narrow for the
@@ -515,12 +567,15 @@ impl CompactBvndf {
             return 0.0;
         }
         let wb = self.grid.weights(wo);
-        let diag = self.visible_area(wo, &wb);
+        let wa = self.grid.weights(wi);
+        let rescale = self.rescale(wi, wo, &wa, &wb);
+        let diag = rescale
+            .as_ref()
+            .map_or_else(|| self.visible_area(wo, &wb), |r| r.diag);
         if !(diag > 0.0) {
             return 0.0;
         }
         let h = (wi + wo).normalized();
-        let wa = self.grid.weights(wi);
         let mut rho: Vec<Option<f64>> = vec![None; self.clusters];
         let mut s = 0.0;
         self.facets.near(h, radius, |n, a, c| {
@@ -531,6 +586,7 @@ impl CompactBvndf {
             let r = *rho[c].get_or_insert_with(|| {
                 let g = blend(&wa, &wb, |na, b| self.entry(na, b, c));
                 let seen = wo.x * g[0] + wo.y * g[1] + wo.z * g[2];
+                let seen = rescale.as_ref().map_or(seen, |r| r.apply(c, seen));
                 let facing = match self.shapes.get(c).filter(|sh| !sh.is_empty()) {
                     Some(sh) => sh.iter().map(|p| p.resultant.dot(wo).max(0.0)).sum(),
                     None => self.resultants[c].dot(wo).max(0.0),
@@ -565,7 +621,10 @@ impl CompactBvndf {
         let wa = self.grid.weights(wi);
         let wb = self.grid.weights(wo);
         let entry = |a: usize, b: usize, c: usize| -> &[f32] { self.entry(a, b, c) };
-        let diag = self.visible_area(wo, &wb);
+        let rescale = self.rescale(wi, wo, &wa, &wb);
+        let diag = rescale
+            .as_ref()
+            .map_or_else(|| self.visible_area(wo, &wb), |r| r.diag);
         let clusters = Clusters {
             centres: &self.centres,
             planar: &self.planar,
@@ -584,9 +643,29 @@ impl CompactBvndf {
             dir,
             &entry,
             |c| blend(&wa, &wb, |a, b| entry(a, b, c)),
+            |c, v| rescale.as_ref().map_or(v, |r| r.apply(c, v)),
             diag,
             out,
         );
+    }
+}
+
+/// The fine seen table's correction at one pair ([`CompactBvndf::rescale`], [`crate::seen`]).
+struct Rescale {
+    /// Per cluster, the factor of [`SeenTable::rescale`]. Not capped at the fine table's seen
+    /// area: the pair table's interpolated value and the fine table's scatter about each other
+    /// where nearly all of a cluster is seen and lit, and a cap there took 2–3 % off every pair
+    /// near the zenith.
+    factor: Vec<f64>,
+    /// `a_v(wo)` from the fine table.
+    diag: f64,
+}
+
+impl Rescale {
+    /// Cluster `c`'s jointly visible projected area `v`, interpolated in the pair table, rescaled.
+    #[inline]
+    fn apply(&self, c: usize, v: f64) -> f64 {
+        v * self.factor[c]
     }
 }
 
@@ -675,6 +754,7 @@ pub(crate) fn assemble_lobes<'t>(
     b_dir: impl Fn(usize) -> Vec3,
     entry: &impl Fn(usize, usize, usize) -> &'t [f32],
     blended: impl Fn(usize) -> [f64; STRIDE],
+    rescale: impl Fn(usize, f64) -> f64,
     diag: f64,
     out: &mut Vec<(f64, Vmf)>,
 ) {
@@ -712,7 +792,7 @@ pub(crate) fn assemble_lobes<'t>(
             }
             if ws > 0.0 {
                 out.push((
-                    area * co * rs / ws / diag,
+                    rescale(c, area * co * rs / ws) / diag,
                     Vmf::new(crate::vmf::KAPPA_MAX, n),
                 ));
                 continue;
@@ -723,7 +803,12 @@ pub(crate) fn assemble_lobes<'t>(
         } else {
             blended(c)
         };
-        let mass = wo.x * a[0] + wo.y * a[1] + wo.z * a[2];
+        let tabulated = wo.x * a[0] + wo.y * a[1] + wo.z * a[2];
+        if !(tabulated > 0.0) {
+            continue;
+        }
+        // The lobe's shape comes from the tabulated moments; only its share is rescaled.
+        let mass = rescale(c, tabulated);
         if !(mass > 0.0) {
             continue;
         }
@@ -741,7 +826,10 @@ pub(crate) fn assemble_lobes<'t>(
         let lobe = if cl.planar[c] {
             Vmf::new(crate::vmf::KAPPA_MAX, cl.centres[c])
         } else {
-            Vmf::new(kappa_from_resultant((len / mass).min(1.0)), m * (1.0 / len))
+            Vmf::new(
+                kappa_from_resultant((len / tabulated).min(1.0)),
+                m * (1.0 / len),
+            )
         };
         out.push((mass / diag, lobe));
     }

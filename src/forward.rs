@@ -144,11 +144,19 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
             log(
                 job.quiet,
                 format!(
-                    "fast: compact BVNDF ({} lobes, {} directions, {} view rays + {} seen rays per direction, {:.2} MB) built in {:.1} ms",
+                    "fast: compact BVNDF ({} lobes, {} directions, {} view rays + {} seen rays per direction, {}, {:.2} MB) built in {:.1} ms",
                     geo.clusters,
                     geo.grid.len(),
                     job.bvndf.rays,
                     job.bvndf.seen_rays,
+                    match &geo.seen {
+                        Some(t) => format!(
+                            "seen table of {} directions × {} height bands",
+                            t.grid.len(),
+                            t.bands
+                        ),
+                        None => "no seen table".to_string(),
+                    },
                     geo.bytes() as f64 / 1e6,
                     t.elapsed().as_secs_f64() * 1e3
                 ),

@@ -34,6 +34,7 @@ pub mod fast;
 pub mod gamma;
 pub mod lightlobes;
 pub mod prefilter;
+pub mod seen;
 pub mod visibility;
 pub mod vmf;
 

@@ -60,6 +60,16 @@ struct BvndfArgs {
     /// control variate for the view rays' noise; 0: off, as in the libraries).
     #[arg(long, default_value_t = BvndfConfig::forward().seen_rays as u32, value_parser = clap::value_parser!(u32).range(0..=1_048_576))]
     seen_rays: u32,
+    /// Azimuths of the fine table of the area seen from each direction (first hits only, one
+    /// row per direction), which rescales the pair table where what a grazing view sees changes
+    /// faster with its azimuth than `--n-phi` resolves (rows of bumps; at most `--n-phi`: off,
+    /// as in the libraries).
+    #[arg(long, default_value_t = BvndfConfig::forward().seen_phi as u32, value_parser = clap::value_parser!(u32).range(0..=4096))]
+    seen_phi: u32,
+    /// Height bands of the fine table's model of joint visibility (what is seen low between
+    /// bumps is lit less than their tops; 1: the view and the light independent).
+    #[arg(long, default_value_t = BvndfConfig::forward().seen_bands as u32, value_parser = clap::value_parser!(u32).range(1..=64))]
+    seen_bands: u32,
 }
 
 impl BvndfArgs {
@@ -71,6 +81,8 @@ impl BvndfArgs {
             rays: self.rays as usize,
             sub_lobes: self.sub_lobes as usize,
             seen_rays: self.seen_rays as usize,
+            seen_phi: self.seen_phi as usize,
+            seen_bands: self.seen_bands as usize,
         }
     }
 }
