@@ -147,8 +147,9 @@ pub struct CompactBvndf {
     pub facets: FacetIndex,
     /// `Σ A n` of each cluster's facets, in units of `A_base`.
     pub resultants: Vec<Vec3>,
-    /// The area of each cluster seen from each direction of a grid with more azimuths, which
-    /// rescales the pair table at both ends ([`crate::seen`]; `None` with `seen_phi` off).
+    /// The area of each cluster seen from each direction of a grid with more azimuths, by
+    /// height band, which corrects the pair table's interpolation ([`crate::seen`]; `None`
+    /// with `seen_phi` off).
     pub seen: Option<SeenTable>,
 }
 
