@@ -29,9 +29,10 @@
 //! of [`crate::bvndf`], which the pair table's seen-area control variate reads at its own
 //! directions instead of casting the same rays again. Fewer rays make the factor noisy where the
 //! surface is rough: on the tall fBm of `bench accuracy --cases 24 --seed 1` (case 15: 2.67 %
-//! without the table) 1024 and 4096 first hits per direction gave 4.63 % and 3.02 %, one per
-//! cell 2.85 % with 8 bands and 2.64 % with 4 (the bands split a cluster's hits; fewer bands,
-//! less noise). On the tall bumps 4 bands give 3.4 % where 8 give 3.3 %.
+//! without the table) 1024 and 4096 first hits per direction gave 4.63 % and 3.02 % (a setting
+//! since removed), one per cell 2.85 % with 8 bands and 2.64 % with 4 (the bands split a
+//! cluster's hits; fewer bands, less noise). On the tall bumps 4 bands give 3.24 %, 8 give
+//! 3.31 % (docs/forward-model.md).
 //!
 //! [`BvndfConfig::seen_phi`]: crate::bvndf::BvndfConfig::seen_phi
 //! [`BvndfConfig::seen_bands`]: crate::bvndf::BvndfConfig::seen_bands
@@ -57,7 +58,8 @@ pub struct SeenTable {
     /// `[node][cluster][band][BAND_STRIDE]`: per height band, `Σ A n` over the area seen from
     /// the node (`S`, in units of `A_base`) and over its facets facing the node (`F`). Kept as
     /// vectors, so that both project on the actual direction: on the tall bumps the same model
-    /// from the nodes' own projected areas (two scalars) gave 3.45 % instead of 3.31 % (8 bands).
+    /// from the nodes' own projected areas (two scalars, an earlier form not kept) gave 3.45 %
+    /// instead of 3.31 % (8 bands).
     pub banded: Vec<f32>,
 }
 
