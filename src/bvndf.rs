@@ -549,9 +549,9 @@ impl CompactBvndf {
         wb: &[(usize, f64)],
     ) -> Option<Rescale> {
         let t = self.seen.as_ref()?;
-        let mut factor = vec![1.0; self.clusters];
-        let diag = t.rescale(&self.grid, wi, wo, wa, wb, &mut factor);
-        Some(Rescale { diag, factor })
+        let (mut factor, mut seen) = (vec![1.0; self.clusters], vec![0.0; self.clusters]);
+        let diag = t.rescale(&self.grid, wi, wo, wa, wb, &mut factor, &mut seen);
+        Some(Rescale { factor, seen, diag })
     }
 
     /// The part of `fbar(wi, wo)` that the glossy lobes of `sharp` (too narrow for the
@@ -653,11 +653,16 @@ impl CompactBvndf {
 
 /// The fine seen table's correction at one pair ([`CompactBvndf::rescale`], [`crate::seen`]).
 struct Rescale {
-    /// Per cluster, the factor of [`SeenTable::rescale`]. Not capped at the fine table's seen
-    /// area: the pair table's interpolated value and the fine table's scatter about each other
-    /// where nearly all of a cluster is seen and lit, and a cap there took 2–3 % off every pair
-    /// near the zenith.
+    /// Per cluster, the factor of [`SeenTable::rescale`].
     factor: Vec<f64>,
+    /// Per cluster, its projected area seen from `wo` in the fine table: a factor may not raise
+    /// a jointly visible area above it. Where the model is nearly 0 at the nodes and not at the
+    /// pair (a cluster shadowed at every node, lit between them) the factor can be in the
+    /// thousands; the bound keeps the rescaled area possible. It does not lower what the pair
+    /// table gives: the table's interpolated value and the fine table's scatter about each other
+    /// where nearly all of a cluster is seen and lit, and capping the result itself at the seen
+    /// area took 2–3 % off every pair near the zenith.
+    seen: Vec<f64>,
     /// `a_v(wo)` from the fine table.
     diag: f64,
 }
@@ -666,7 +671,7 @@ impl Rescale {
     /// Cluster `c`'s jointly visible projected area `v`, interpolated in the pair table, rescaled.
     #[inline]
     fn apply(&self, c: usize, v: f64) -> f64 {
-        v * self.factor[c]
+        (v * self.factor[c]).min(v.max(self.seen[c]))
     }
 }
 
