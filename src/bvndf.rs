@@ -14,7 +14,7 @@
 //!   foreshortening that favours normals facing `wo` at grazing angles, both move the lobe);
 //! * `a_v(wo)` comes from the same table on the diagonal `a = b`, so a flat patch is exact;
 //! * with a fine seen table ([`crate::seen`]; `forward`'s default), each cluster's interpolated
-//!   share (not its shape) is multiplied by a factor that carries what changes between the
+//!   share is multiplied by a factor, and its mean normal turned, by what changes between the
 //!   table's directions faster than they follow (grazing views along rows of bumps), and
 //!   `a_v(wo)` comes from the fine table;
 //! * a planar cluster (one normal: groove faces, walls) takes its analytic projected area
@@ -23,10 +23,10 @@
 //! * for a material with a glossy lobe, which resolves the shape of a cluster's normal
 //!   distribution (a rough surface's cluster is a broad, flat-topped patch that one vMF does not
 //!   follow), a curved cluster comes instead as its sub-lobes: its whole facet distribution split
-//!   by k-means into up to 16 vMFs, weighted by their projected area towards `wo`, and turned
-//!   together so that their `(n·wo)`-weighted mean normal is the visible one. Visibility stays
-//!   per cluster; only the shape comes from the facets. The libraries keep one vMF per cluster
-//!   ([`BvndfConfig::library`]).
+//!   by k-means into up to 16 vMFs, each weighted by its visible projected area towards `wo`
+//!   (its visible fraction fitted to the cluster's 9 interpolated moments, [`crate::sublobes`]),
+//!   and turned together so that their `(n·wo)`-weighted mean normal is the visible one. The
+//!   libraries keep one vMF per cluster ([`BvndfConfig::library`]).
 //!
 //! The moments are integrated with view rays, as the exact evaluator does: for each node `b`,
 //! stratified rays from `b` ([`BvndfConfig::rays`]) find the points `b` sees
@@ -46,10 +46,11 @@
 
 use crate::dirgrid::DirGrid;
 use crate::facetindex::FacetIndex;
-use crate::frame::{Rotation, Vec3};
+use crate::frame::Vec3;
 use crate::heightfield::Heightfield;
 use crate::material::Material;
-use crate::seen::{seen_moments, SeenTable};
+use crate::seen::{seen_moments, Correction, SeenTable};
+use crate::sublobes::{cluster_shapes, Shape};
 use crate::visibility::{ray_lattice, Visibility};
 use crate::vmf::{kappa_from_resultant, Vmf};
 use rayon::prelude::*;
@@ -139,9 +140,9 @@ pub struct CompactBvndf {
     pub planar: Vec<bool>,
     /// Area of each cluster in units of `A_base`.
     pub cluster_area: Vec<f64>,
-    /// Per curved cluster, its whole normal distribution split into sub-lobes (empty for planar
-    /// clusters and with `sub_lobes = 1`).
-    pub shapes: Vec<Vec<SubLobe>>,
+    /// Per curved cluster, its whole normal distribution split into sub-lobes, with what fits
+    /// their visible fractions at a pair (empty for planar clusters and with `sub_lobes = 1`).
+    pub shapes: Vec<Shape>,
     /// The curved clusters' facets by normal direction, for glossy lobes too sharp for the
     /// prefiltered table ([`Self::sharp_fbar`]).
     pub facets: FacetIndex,
@@ -151,82 +152,6 @@ pub struct CompactBvndf {
     /// height band, which corrects the pair table's interpolation ([`crate::seen`]; `None`
     /// with `seen_phi` off).
     pub seen: Option<SeenTable>,
-}
-
-/// One part of a cluster's normal distribution, from all its facets (visibility aside).
-#[derive(Debug, Clone, PartialEq)]
-pub struct SubLobe {
-    /// `Σ A n` over the part's facets, in units of `A_base`.
-    pub resultant: Vec3,
-    /// `Σ A n nᵀ` (xx, yy, zz, xy, xz, yz).
-    pub second: [f64; 6],
-    /// The part's own vMF (mean direction, concentration from the mean resultant length).
-    pub lobe: Vmf,
-}
-
-/// The sub-lobes of every curved cluster: at most `s` of them, by area-weighted k-means within
-/// the cluster.
-pub(crate) fn cluster_shapes(
-    normals: &[Vec3],
-    areas: &[f64],
-    assign: &[u16],
-    planar: &[bool],
-    s: usize,
-) -> Vec<Vec<SubLobe>> {
-    let mut members: Vec<Vec<usize>> = vec![Vec::new(); planar.len()];
-    for (i, &k) in assign.iter().enumerate() {
-        members[k as usize].push(i);
-    }
-    members
-        .par_iter()
-        .zip(planar)
-        .map(|(idx, &flat)| {
-            if flat || s < 2 || idx.is_empty() {
-                return Vec::new();
-            }
-            let n: Vec<Vec3> = idx.iter().map(|&i| normals[i]).collect();
-            let a: Vec<f64> = idx.iter().map(|&i| areas[i]).collect();
-            let (sa, sc) = cluster_normals(&n, &a, s);
-            (0..sc.len())
-                .map(|k| {
-                    part_of(
-                        n.iter()
-                            .zip(&a)
-                            .zip(&sa)
-                            .filter(|(_, &j)| j as usize == k)
-                            .map(|((nn, aa), _)| (*nn, *aa)),
-                    )
-                })
-                .filter(|p| p.resultant.norm() > 0.0)
-                .collect()
-        })
-        .collect()
-}
-
-/// The moments and vMF of a set of `(normal, area)`.
-fn part_of(facets: impl Iterator<Item = (Vec3, f64)>) -> SubLobe {
-    let mut o = SubLobe {
-        resultant: Vec3::default(),
-        second: [0.0; 6],
-        lobe: Vmf::new(0.0, Vec3::Z),
-    };
-    let mut mass = 0.0;
-    for (n, a) in facets {
-        o.resultant = o.resultant + n * a;
-        let m = moments(n);
-        for q in 0..6 {
-            o.second[q] += a * m[3 + q];
-        }
-        mass += a;
-    }
-    let len = o.resultant.norm();
-    if mass > 0.0 && len > 0.0 {
-        o.lobe = Vmf::new(
-            kappa_from_resultant((len / mass).min(1.0)),
-            o.resultant * (1.0 / len),
-        );
-    }
-    o
 }
 
 #[inline]
@@ -507,7 +432,7 @@ impl CompactBvndf {
         self.table.len() * 4
             + self.seen.as_ref().map_or(0, SeenTable::bytes)
             + self.centres.len() * 49
-            + self.shapes.iter().map(Vec::len).sum::<usize>() * std::mem::size_of::<SubLobe>()
+            + self.shapes.iter().map(Shape::bytes).sum::<usize>()
             + self.facets.bytes()
     }
 
@@ -539,19 +464,17 @@ impl CompactBvndf {
         w.x * e[0] as f64 + w.y * e[1] as f64 + w.z * e[2] as f64
     }
 
-    /// The fine seen table's rescaling at the pair `(wi, wo)` (node weights `wa`, `wb`), or
+    /// The fine seen table's correction at the pair `(wi, wo)` (node weights `wa`, `wb`), or
     /// `None` without one.
-    fn rescale(
+    fn correction(
         &self,
         wi: Vec3,
         wo: Vec3,
         wa: &[(usize, f64)],
         wb: &[(usize, f64)],
-    ) -> Option<Rescale> {
+    ) -> Option<Correction> {
         let t = self.seen.as_ref()?;
-        let (mut factor, mut seen) = (vec![1.0; self.clusters], vec![0.0; self.clusters]);
-        let diag = t.rescale(&self.grid, wi, wo, wa, wb, &mut factor, &mut seen);
-        Some(Rescale { factor, seen, diag })
+        Some(t.correction(&self.grid, wi, wo, wa, wb))
     }
 
     /// The part of `fbar(wi, wo)` that the glossy lobes of `sharp` (too narrow for the
@@ -569,10 +492,10 @@ impl CompactBvndf {
         }
         let wb = self.grid.weights(wo);
         let wa = self.grid.weights(wi);
-        let rescale = self.rescale(wi, wo, &wa, &wb);
-        let diag = rescale
+        let correction = self.correction(wi, wo, &wa, &wb);
+        let diag = correction
             .as_ref()
-            .map_or_else(|| self.visible_area(wo, &wb), |r| r.diag);
+            .map_or_else(|| self.visible_area(wo, &wb), |k| k.diag);
         if !(diag > 0.0) {
             return 0.0;
         }
@@ -587,9 +510,9 @@ impl CompactBvndf {
             let r = *rho[c].get_or_insert_with(|| {
                 let g = blend(&wa, &wb, |na, b| self.entry(na, b, c));
                 let seen = wo.x * g[0] + wo.y * g[1] + wo.z * g[2];
-                let seen = rescale.as_ref().map_or(seen, |r| r.apply(c, seen));
+                let seen = correction.as_ref().map_or(seen, |k| k.area(c, seen));
                 let facing = match self.shapes.get(c).filter(|sh| !sh.is_empty()) {
-                    Some(sh) => sh.iter().map(|p| p.resultant.dot(wo).max(0.0)).sum(),
+                    Some(sh) => sh.parts.iter().map(|p| p.resultant.dot(wo).max(0.0)).sum(),
                     None => self.resultants[c].dot(wo).max(0.0),
                 };
                 if facing > 0.0 {
@@ -622,10 +545,10 @@ impl CompactBvndf {
         let wa = self.grid.weights(wi);
         let wb = self.grid.weights(wo);
         let entry = |a: usize, b: usize, c: usize| -> &[f32] { self.entry(a, b, c) };
-        let rescale = self.rescale(wi, wo, &wa, &wb);
-        let diag = rescale
+        let correction = self.correction(wi, wo, &wa, &wb);
+        let diag = correction
             .as_ref()
-            .map_or_else(|| self.visible_area(wo, &wb), |r| r.diag);
+            .map_or_else(|| self.visible_area(wo, &wb), |k| k.diag);
         let clusters = Clusters {
             centres: &self.centres,
             planar: &self.planar,
@@ -644,34 +567,10 @@ impl CompactBvndf {
             dir,
             &entry,
             |c| blend(&wa, &wb, |a, b| entry(a, b, c)),
-            |c, v| rescale.as_ref().map_or(v, |r| r.apply(c, v)),
+            correction.as_ref(),
             diag,
             out,
         );
-    }
-}
-
-/// The fine seen table's correction at one pair ([`CompactBvndf::rescale`], [`crate::seen`]).
-struct Rescale {
-    /// Per cluster, the factor of [`SeenTable::rescale`].
-    factor: Vec<f64>,
-    /// Per cluster, its projected area seen from `wo` in the fine table: a factor may not raise
-    /// a jointly visible area above it. Where the model is nearly 0 at the nodes and not at the
-    /// pair (a cluster shadowed at every node, lit between them) the factor can be in the
-    /// thousands; the bound keeps the rescaled area possible. It does not lower what the pair
-    /// table gives: the table's interpolated value and the fine table's scatter about each other
-    /// where nearly all of a cluster is seen and lit, and capping the result itself at the seen
-    /// area took 2–3 % off every pair near the zenith.
-    seen: Vec<f64>,
-    /// `a_v(wo)` from the fine table.
-    diag: f64,
-}
-
-impl Rescale {
-    /// Cluster `c`'s jointly visible projected area `v`, interpolated in the pair table, rescaled.
-    #[inline]
-    fn apply(&self, c: usize, v: f64) -> f64 {
-        (v * self.factor[c]).min(v.max(self.seen[c]))
     }
 }
 
@@ -692,7 +591,7 @@ impl LobeSource for CompactBvndf {
     fn clusters(&self) -> usize {
         self.shapes
             .iter()
-            .map(|s| s.len().max(1))
+            .map(|s| s.parts.len().max(1))
             .sum::<usize>()
             .max(self.clusters)
     }
@@ -704,7 +603,7 @@ pub(crate) struct Clusters<'a> {
     pub planar: &'a [bool],
     pub area: &'a [f64],
     /// Per cluster, its sub-lobes (empty: one vMF).
-    pub shapes: &'a [Vec<SubLobe>],
+    pub shapes: &'a [Shape],
     /// Whether curved clusters come as their sub-lobes.
     pub split: bool,
 }
@@ -760,7 +659,7 @@ pub(crate) fn assemble_lobes<'t>(
     b_dir: impl Fn(usize) -> Vec3,
     entry: &impl Fn(usize, usize, usize) -> &'t [f32],
     blended: impl Fn(usize) -> [f64; STRIDE],
-    rescale: impl Fn(usize, f64) -> f64,
+    correction: Option<&Correction>,
     diag: f64,
     out: &mut Vec<(f64, Vmf)>,
 ) {
@@ -797,8 +696,9 @@ pub(crate) fn assemble_lobes<'t>(
                 }
             }
             if ws > 0.0 {
+                let v = area * co * rs / ws;
                 out.push((
-                    rescale(c, area * co * rs / ws) / diag,
+                    correction.map_or(v, |k| k.area(c, v)) / diag,
                     Vmf::new(crate::vmf::KAPPA_MAX, n),
                 ));
                 continue;
@@ -813,19 +713,24 @@ pub(crate) fn assemble_lobes<'t>(
         if !(tabulated > 0.0) {
             continue;
         }
-        // The lobe's shape comes from the tabulated moments; only its share is rescaled.
-        let mass = rescale(c, tabulated);
+        // The lobe's shape comes from the tabulated moments; its share is rescaled and its
+        // mean normal turned by the fine seen table.
+        let mass = correction.map_or(tabulated, |k| k.area(c, tabulated));
         if !(mass > 0.0) {
             continue;
         }
         // (n·wo)-weighted normal moment G2 wo.
         let m = second_times(&a[3..], wo);
+        let m = match correction {
+            Some(k) if !cl.planar[c] => k.mean(c, m),
+            _ => m,
+        };
         let len = m.norm();
         if !(len > 0.0) {
             continue;
         }
-        if let Some(shape) = cl.shapes.get(c).filter(|s| cl.split && s.len() > 1) {
-            if push_sub_lobes(shape, wo, m, mass / diag, out) {
+        if let Some(shape) = cl.shapes.get(c).filter(|s| cl.split && s.parts.len() > 1) {
+            if shape.push(wo, m, &a, mass / diag, out) {
                 continue;
             }
         }
@@ -841,42 +746,9 @@ pub(crate) fn assemble_lobes<'t>(
     }
 }
 
-/// A curved cluster as its sub-lobes: each weighted by its projected area towards `wo`, the
-/// whole set turned so that its `(n·wo)`-weighted mean normal is the visible one, `m`, and the
-/// weights summing to the cluster's `share`. False (nothing pushed) when no sub-lobe faces `wo`.
-fn push_sub_lobes(
-    sub: &[SubLobe],
-    wo: Vec3,
-    m: Vec3,
-    share: f64,
-    out: &mut Vec<(f64, Vmf)>,
-) -> bool {
-    let start = out.len();
-    let mut total = 0.0;
-    let mut pred = Vec3::default();
-    for s in sub {
-        let w = s.resultant.dot(wo);
-        if w > 0.0 {
-            pred = pred + second_times(&s.second, wo);
-            total += w;
-            out.push((w, s.lobe));
-        }
-    }
-    if !(total > 0.0) || !(pred.norm() > 0.0) {
-        out.truncate(start);
-        return false;
-    }
-    let turn = Rotation::between(pred.normalized(), m.normalized());
-    for (w, l) in &mut out[start..] {
-        *w *= share / total;
-        *l = Vmf::new(l.kappa, turn.apply(l.mu));
-    }
-    true
-}
-
 /// `Q w` for the symmetric matrix `Q` stored as `(xx, yy, zz, xy, xz, yz)`.
 #[inline]
-fn second_times(q: &[f64], w: Vec3) -> Vec3 {
+pub(crate) fn second_times(q: &[f64], w: Vec3) -> Vec3 {
     Vec3::new(
         q[0] * w.x + q[3] * w.y + q[4] * w.z,
         q[3] * w.x + q[1] * w.y + q[5] * w.z,

@@ -35,6 +35,7 @@ pub mod gamma;
 pub mod lightlobes;
 pub mod prefilter;
 pub mod seen;
+pub mod sublobes;
 pub mod visibility;
 pub mod vmf;
 

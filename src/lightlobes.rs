@@ -323,7 +323,7 @@ impl LightLobes<'_> {
                 a.copy_from_slice(&acc[c * STRIDE..(c + 1) * STRIDE]);
                 a
             },
-            |_, v| v,
+            None,
             diag,
             out,
         );
