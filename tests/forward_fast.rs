@@ -37,6 +37,21 @@ fn case(
     (hf, pairs, exact, pf)
 }
 
+/// The relative RMS errors against `exact` of two sets of fast values (`(name, values)`), printed
+/// as `what, N pairs: name_a X %, name_b Y %`.
+fn compare(what: &str, a: (&str, &[f64]), b: (&str, &[f64]), exact: &[f64]) -> (f64, f64) {
+    let (ea, eb) = (relative_rms(a.1, exact), relative_rms(b.1, exact));
+    eprintln!(
+        "{what}, {} pairs: {} {:.2} %, {} {:.2} %",
+        exact.len(),
+        a.0,
+        100.0 * ea,
+        b.0,
+        100.0 * eb
+    );
+    (ea, eb)
+}
+
 #[test]
 fn sub_lobes_follow_a_sharp_material_on_a_rough_surface() {
     let (hf, pairs, exact, pf) = case(
@@ -46,13 +61,11 @@ fn sub_lobes_follow_a_sharp_material_on_a_rough_surface() {
     );
     let with = CompactBvndf::build(&hf, &BvndfConfig::default());
     let without = CompactBvndf::build(&hf, &BvndfConfig::library());
-    let e_with = relative_rms(&fast::fbar(&with, &pf, &pairs), &exact);
-    let e_without = relative_rms(&fast::fbar(&without, &pf, &pairs), &exact);
-    eprintln!(
-        "rough fBm, Blinn n=192, {} pairs: fast with sub-lobes {:.2} %, one vMF per cluster {:.2} %",
-        pairs.len(),
-        100.0 * e_with,
-        100.0 * e_without
+    let (e_with, e_without) = compare(
+        "rough fBm, Blinn n=192",
+        ("fast with sub-lobes", &fast::fbar(&with, &pf, &pairs)),
+        ("one vMF per cluster", &fast::fbar(&without, &pf, &pairs)),
+        &exact,
     );
     assert!(e_with < 0.6 * e_without, "{e_with} vs {e_without}");
     assert!(e_with < 0.08, "{e_with}");
@@ -74,13 +87,11 @@ fn sharp_lobes_on_curved_surfaces_are_summed_over_facets() {
     let split = Prefiltered::build_split(&mat, &PrefilterConfig::default(), fast::FACET_WIDTH);
     assert_eq!(split.sharp().map(|(m, _)| m.lobes.len()), Some(1));
     assert!(!geo.facets.is_empty());
-    let e_facets = relative_rms(&fast::fbar_with_facets(&geo, &split, &pairs), &exact);
-    let e_table = relative_rms(&fast::fbar(&geo, &table, &pairs), &exact);
-    eprintln!(
-        "bumps, {material}, {} pairs: facets {:.2} %, table {:.2} %",
-        pairs.len(),
-        100.0 * e_facets,
-        100.0 * e_table
+    let (e_facets, e_table) = compare(
+        &format!("bumps, {material}"),
+        ("facets", &fast::fbar_with_facets(&geo, &split, &pairs)),
+        ("table", &fast::fbar(&geo, &table, &pairs)),
+        &exact,
     );
     assert!(
         e_facets < 0.15 && e_facets < 0.5 * e_table,
@@ -146,13 +157,11 @@ fn seen_rays_remove_the_view_rays_noise_on_a_rough_surface() {
             ..BvndfConfig::default()
         },
     );
-    let e_plain = relative_rms(&fast::fbar(&plain, &pf, &pairs), &exact);
-    let e_cv = relative_rms(&fast::fbar(&cv, &pf, &pairs), &exact);
-    eprintln!(
-        "fBm, Beckmann 0.123, {} pairs: 1024 rays {:.2} %, + 8192 seen rays {:.2} %",
-        pairs.len(),
-        100.0 * e_plain,
-        100.0 * e_cv
+    let (e_plain, e_cv) = compare(
+        "fBm, Beckmann 0.123",
+        ("1024 rays", &fast::fbar(&plain, &pf, &pairs)),
+        ("+ 8192 seen rays", &fast::fbar(&cv, &pf, &pairs)),
+        &exact,
     );
     assert!(e_cv < 0.7 * e_plain, "{e_cv} vs {e_plain}");
     assert!(e_cv < 0.035, "{e_cv}");
@@ -168,22 +177,18 @@ fn the_default_polar_nodes_follow_tall_grooves_at_grazing_angles() {
         "ward:alpha=0.117+lambert:albedo=0.17",
         2,
     );
-    let err = |n_theta| {
+    let values = |n_theta| {
         let cfg = BvndfConfig {
             n_theta,
             ..BvndfConfig::forward()
         };
-        relative_rms(
-            &fast::fbar(&CompactBvndf::build(&hf, &cfg), &pf, &pairs),
-            &exact,
-        )
+        fast::fbar(&CompactBvndf::build(&hf, &cfg), &pf, &pairs)
     };
-    let (sixteen, default) = (err(16), err(BvndfConfig::forward().n_theta));
-    eprintln!(
-        "tall sine grooves, {} pairs: 16 polar nodes {:.2} %, the default {:.2} %",
-        pairs.len(),
-        100.0 * sixteen,
-        100.0 * default
+    let (sixteen, default) = compare(
+        "tall sine grooves",
+        ("16 polar nodes", &values(16)),
+        ("the default", &values(BvndfConfig::forward().n_theta)),
+        &exact,
     );
     assert!(
         default < 0.015 && default < 0.6 * sixteen,
@@ -195,58 +200,43 @@ fn the_default_polar_nodes_follow_tall_grooves_at_grazing_angles() {
 /// azimuth (along a "street" between bumps it reaches their flanks, a few degrees off only their
 /// tops), faster than the pair table's 32 azimuths follow. The fine seen table
 /// (`BvndfConfig::seen_phi`, the `seen` module) corrects the pair table's interpolation: over
-/// the default pairs up to 85° the fast method went from 9.2 % to 3.2 % on this surface, and
-/// to 2.5 % with the fitted sub-lobes and the turned mean normals (`biscale forward` against
-/// `--method exact`, docs/forward-model.md). Without the table is the same build with the
-/// correction left out.
+/// the default pairs up to 85° the fast method went from 9.2 % to 3.2 % on this surface under a
+/// glossy and Lambertian blend, and to 2.5 % with the fitted sub-lobes and the turned mean
+/// normals (`biscale forward` against `--method exact`, docs/forward-model.md). Without the table
+/// is the same build with the correction left out.
+///
+/// A grazing view also sees the side of each bump that faces it, so the parts of a curved
+/// cluster are not seen alike: each sub-lobe's visible fraction is fitted to the cluster's
+/// tabulated moments (`sublobes::Shape`). Under a pure glossy lobe the fast method is 3.02 % from
+/// the exact one with the fit and was 3.36 % without it (docs/forward-model.md, "Which parts of
+/// a cluster a grazing view sees"); without the fit is the same build with the shapes' fit left
+/// out.
 #[test]
-fn the_seen_table_follows_grazing_views_along_rows_of_bumps() {
-    let (hf, pairs, exact, pf) = case(
-        "bumps:n=32,count=13,radius=8.245,height=5.546,seed=252685420",
-        "ggx:alpha=0.3,f0=0.9+lambert:albedo=0.2",
-        1,
-    );
+fn the_seen_table_and_fitted_sub_lobes_follow_grazing_views_along_rows_of_bumps() {
+    let bumps = "bumps:n=32,count=13,radius=8.245,height=5.546,seed=252685420";
+    let (hf, pairs, blend_exact, blend) = case(bumps, "ggx:alpha=0.3,f0=0.9+lambert:albedo=0.2", 1);
+    let (_, _, ggx_exact, ggx) = case(bumps, "ggx:alpha=0.3", 1);
     let with = CompactBvndf::build(&hf, &BvndfConfig::forward());
     assert!(with.seen.is_some());
     let mut without = with.clone();
     without.seen = None;
-    let e_with = relative_rms(&fast::fbar(&with, &pf, &pairs), &exact);
-    let e_without = relative_rms(&fast::fbar(&without, &pf, &pairs), &exact);
-    eprintln!(
-        "tall bumps, GGX 0.3 + Lambert, {} pairs: with the seen table {:.2} %, without {:.2} %",
-        pairs.len(),
-        100.0 * e_with,
-        100.0 * e_without
+    let (e_with, e_without) = compare(
+        "tall bumps, GGX 0.3 + Lambert",
+        ("with the seen table", &fast::fbar(&with, &blend, &pairs)),
+        ("without", &fast::fbar(&without, &blend, &pairs)),
+        &blend_exact,
     );
     assert!(
         e_with < 0.03 && e_with < 0.5 * e_without,
         "{e_with} vs {e_without}"
     );
-}
-
-/// A grazing view over tall bumps sees the side of each bump that faces it, so the parts of a
-/// curved cluster are not seen alike: each sub-lobe's visible fraction is fitted to the
-/// cluster's tabulated moments (`sublobes::Shape`). On these bumps under a pure glossy lobe, up
-/// to 85°, the fast method is 3.02 % from the exact one with the fit and was 3.36 % without it
-/// (`biscale forward`, docs/forward-model.md, "Which parts of a cluster a grazing view sees");
-/// without the fit is the same build with the shapes' fit left out.
-#[test]
-fn fitted_sub_lobes_follow_what_a_grazing_view_sees() {
-    let (hf, pairs, exact, pf) = case(
-        "bumps:n=32,count=13,radius=8.245,height=5.546,seed=252685420",
-        "ggx:alpha=0.3",
-        1,
-    );
-    let fitted = CompactBvndf::build(&hf, &BvndfConfig::forward());
-    let mut unfitted = fitted.clone();
-    unfitted.shapes = fitted.shapes.iter().map(|s| s.unfitted()).collect();
-    let e_fitted = relative_rms(&fast::fbar(&fitted, &pf, &pairs), &exact);
-    let e_unfitted = relative_rms(&fast::fbar(&unfitted, &pf, &pairs), &exact);
-    eprintln!(
-        "tall bumps, GGX 0.3, {} pairs: fitted sub-lobes {:.2} %, unfitted {:.2} %",
-        pairs.len(),
-        100.0 * e_fitted,
-        100.0 * e_unfitted
+    let mut unfitted = with.clone();
+    unfitted.shapes = with.shapes.iter().map(|s| s.unfitted()).collect();
+    let (e_fitted, e_unfitted) = compare(
+        "tall bumps, GGX 0.3",
+        ("fitted sub-lobes", &fast::fbar(&with, &ggx, &pairs)),
+        ("unfitted", &fast::fbar(&unfitted, &ggx, &pairs)),
+        &ggx_exact,
     );
     assert!(
         e_fitted < 0.035 && e_fitted < 0.95 * e_unfitted,
