@@ -53,60 +53,57 @@ pub struct Shape {
     pub parts: Vec<SubLobe>,
     /// `Σ |Σ A n|` over the parts: the unit of the fit's moments.
     scale: f64,
-    /// `(M Mᵀ + RIDGE · I)⁻¹`, row-major 9 × 9, with `M` the parts' 9 moments (one column per
-    /// part) over `scale`; empty with fewer than 2 parts.
-    inverse: Vec<f64>,
+    /// Per part, its 9 moments (`Σ A n`, `Σ A n nᵀ`) over `scale`: the columns of `M`.
+    columns: Vec<[f64; STRIDE]>,
+    /// Per part, `(M Mᵀ + RIDGE · I)⁻¹` times its column: the fit's step for the part is this
+    /// times the residual of the moments. Empty with fewer than 2 parts (no fit).
+    gains: Vec<[f64; STRIDE]>,
 }
 
 impl Shape {
-    /// The shape of `parts`, with the fit's inverse computed once here (`faer`'s Cholesky).
+    /// The shape of `parts`, with the fit's gains computed once here (`faer`'s Cholesky).
     pub fn new(parts: Vec<SubLobe>) -> Self {
         let scale: f64 = parts.iter().map(|p| p.resultant.norm()).sum();
-        let mut shape = Shape {
+        let columns: Vec<[f64; STRIDE]> = if scale > 0.0 {
+            parts
+                .iter()
+                .map(|p| {
+                    let r = p.resultant;
+                    let mut c = [r.x, r.y, r.z, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+                    c[3..].copy_from_slice(&p.second);
+                    c.map(|x| x / scale)
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let gains = if parts.len() < 2 || columns.is_empty() {
+            Vec::new()
+        } else {
+            gains_of(&columns)
+        };
+        Shape {
             parts,
             scale,
-            inverse: Vec::new(),
-        };
-        if shape.parts.len() < 2 || !(scale > 0.0) {
-            return shape;
+            columns,
+            gains,
         }
-        let mut a = Mat::<f64>::zeros(STRIDE, STRIDE);
-        for i in 0..shape.parts.len() {
-            let c = shape.column(i);
-            for p in 0..STRIDE {
-                for q in 0..STRIDE {
-                    a[(p, q)] += c[p] * c[q];
-                }
-            }
-        }
-        for p in 0..STRIDE {
-            a[(p, p)] += RIDGE;
-        }
-        if let Ok(llt) = a.llt(Side::Lower) {
-            let inv = llt.solve(Mat::<f64>::identity(STRIDE, STRIDE));
-            let flat: Vec<f64> = (0..STRIDE * STRIDE)
-                .map(|k| inv[(k / STRIDE, k % STRIDE)])
-                .collect();
-            if flat.iter().all(|x| x.is_finite()) {
-                shape.inverse = flat;
-            }
-        }
-        shape
     }
 
     /// The same parts weighted by their projected area towards `wo` alone, without the fit of
     /// their visible fractions (the sub-lobes as they were read before it: a comparison).
     pub fn unfitted(&self) -> Self {
         Shape {
-            parts: self.parts.clone(),
-            scale: self.scale,
-            inverse: Vec::new(),
+            gains: Vec::new(),
+            ..self.clone()
         }
     }
 
-    /// Bytes of the sub-lobes and the fit's inverse.
+    /// Bytes of the sub-lobes and the fit's columns and gains.
     pub fn bytes(&self) -> usize {
-        self.parts.len() * std::mem::size_of::<SubLobe>() + (self.inverse.len() + 1) * 8
+        self.parts.len() * std::mem::size_of::<SubLobe>()
+            + (self.columns.len() + self.gains.len()) * STRIDE * 8
+            + 8
     }
 
     /// Whether the cluster has no sub-lobes.
@@ -114,66 +111,42 @@ impl Shape {
         self.parts.is_empty()
     }
 
-    /// Part `i`'s 9 moments (`Σ A n`, `Σ A n nᵀ`) over `scale`.
-    #[inline]
-    fn column(&self, i: usize) -> [f64; STRIDE] {
-        let p = &self.parts[i];
-        let r = p.resultant;
-        let mut c = [r.x, r.y, r.z, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
-        c[3..].copy_from_slice(&p.second);
-        c.map(|x| x / self.scale)
-    }
-
     /// Each part's visible fraction at a pair whose interpolated jointly visible moments are
     /// `g` (module doc): 0 for the parts that do not face `wo`; the whole cluster's fraction
     /// (`wo·G1` over the facing parts' projected area) where there is no fit.
     fn visible(&self, wo: Vec3, g: &[f64; STRIDE], fraction: &mut Vec<f64>) {
+        // First each part's projected area towards wo, then its fraction.
         fraction.clear();
-        fraction.resize(self.parts.len(), 0.0);
-        let facing: f64 = self
-            .parts
-            .iter()
-            .map(|p| p.resultant.dot(wo).max(0.0))
-            .sum();
+        fraction.extend(self.parts.iter().map(|p| p.resultant.dot(wo).max(0.0)));
+        let facing: f64 = fraction.iter().sum();
         if !(facing > 0.0) {
             return;
         }
         let seen = wo.x * g[0] + wo.y * g[1] + wo.z * g[2];
         let t = (seen / facing).clamp(0.0, 1.0);
-        for (f, p) in fraction.iter_mut().zip(&self.parts) {
-            if p.resultant.dot(wo) > 0.0 {
+        if self.gains.is_empty() {
+            for f in fraction.iter_mut().filter(|f| **f > 0.0) {
                 *f = t;
             }
-        }
-        if self.inverse.is_empty() {
             return;
         }
         // The residual of the uniform fraction, then the least-squares step that removes it.
         let mut r: [f64; STRIDE] = std::array::from_fn(|k| g[k] / self.scale);
-        for (i, &f) in fraction.iter().enumerate() {
-            if f > 0.0 {
-                let c = self.column(i);
+        for (c, &a) in self.columns.iter().zip(fraction.iter()) {
+            if a > 0.0 {
                 for k in 0..STRIDE {
-                    r[k] -= f * c[k];
+                    r[k] -= t * c[k];
                 }
             }
         }
-        let y: [f64; STRIDE] = std::array::from_fn(|p| {
-            (0..STRIDE)
-                .map(|q| self.inverse[p * STRIDE + q] * r[q])
-                .sum()
-        });
         let mut fitted = 0.0;
-        for (i, (f, p)) in fraction.iter_mut().zip(&self.parts).enumerate() {
-            let facing = p.resultant.dot(wo);
-            if facing > 0.0 {
-                let c = self.column(i);
-                let step: f64 = (0..STRIDE).map(|k| c[k] * y[k]).sum();
+        for (f, gain) in fraction.iter_mut().zip(&self.gains) {
+            let area = *f;
+            if area > 0.0 {
+                let step: f64 = (0..STRIDE).map(|k| gain[k] * r[k]).sum();
                 let v = (t + step).clamp(0.0, 1.0);
-                if v.is_finite() {
-                    *f = v;
-                    fitted += v * facing;
-                }
+                *f = if v.is_finite() { v } else { t };
+                fitted += *f * area;
             }
         }
         if !(fitted > 0.0) {
@@ -219,6 +192,40 @@ impl Shape {
             *l = Vmf::new(l.kappa, turn.apply(l.mu));
         }
         true
+    }
+}
+
+/// Per column `c_i` of `M`, `(M Mᵀ + RIDGE · I)⁻¹ c_i` (`faer`'s Cholesky of the 9 × 9 matrix);
+/// empty if it fails or is not finite.
+fn gains_of(columns: &[[f64; STRIDE]]) -> Vec<[f64; STRIDE]> {
+    let mut a = Mat::<f64>::zeros(STRIDE, STRIDE);
+    for c in columns {
+        for p in 0..STRIDE {
+            for q in 0..STRIDE {
+                a[(p, q)] += c[p] * c[q];
+            }
+        }
+    }
+    for p in 0..STRIDE {
+        a[(p, p)] += RIDGE;
+    }
+    let Ok(llt) = a.llt(Side::Lower) else {
+        return Vec::new();
+    };
+    let mut m = Mat::<f64>::zeros(STRIDE, columns.len());
+    for (j, c) in columns.iter().enumerate() {
+        for p in 0..STRIDE {
+            m[(p, j)] = c[p];
+        }
+    }
+    let x = llt.solve(m);
+    let gains: Vec<[f64; STRIDE]> = (0..columns.len())
+        .map(|j| std::array::from_fn(|p| x[(p, j)]))
+        .collect();
+    if gains.iter().flatten().all(|v| v.is_finite()) {
+        gains
+    } else {
+        Vec::new()
     }
 }
 
