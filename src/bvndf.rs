@@ -67,8 +67,10 @@ pub struct BvndfConfig {
     /// Sub-lobes per curved cluster: its whole normal distribution split further, for materials
     /// with a glossy lobe. 1: every cluster is one vMF, as in the libraries.
     pub sub_lobes: usize,
-    /// View rays per grid direction for the area seen from it (first hits only, no horizon
-    /// marches): a control variate for the jointly visible moments. 0 or at most `rays`: off.
+    /// First hits per grid direction for the area seen from it (no horizon marches, by line
+    /// sweeps, [`crate::visibility::Visibility::seen_facets`]): a control variate for the
+    /// jointly visible moments, and the rows of the fine seen table. At most the marched rays'
+    /// count: off.
     pub seen_rays: usize,
     /// Azimuths of the fine table of the area seen from each direction ([`crate::seen`]), which
     /// corrects the pair table's interpolation. At most `n_phi`: off.
@@ -95,19 +97,19 @@ impl Default for BvndfConfig {
 impl BvndfConfig {
     /// The `forward` command's default: 24 polar nodes and 32 azimuths (grazing views on
     /// grooves: 16 polar nodes left tall sine grooves at 3.3 % up to 85°), 32 normal clusters
-    /// (visibility that selects part of a rough surface's normals), 512 marched view rays and
-    /// 8192 first hits per direction for the area seen from it (a control variate that removes
-    /// most of the view rays' noise on rough surfaces, `seen_rays`), and the fine seen table on
-    /// 128 azimuths (tall surfaces at grazing views, [`crate::seen`]), for a build about 12× the
-    /// libraries' grid's (docs/forward-model.md).
+    /// (visibility that selects part of a rough surface's normals), 1024 marched view rays and
+    /// 65,536 first hits per direction for the area seen from it (a control variate that removes
+    /// most of the view rays' noise on rough surfaces, `seen_rays`; line sweeps make them
+    /// cheap), and the fine seen table on 512 azimuths (tall surfaces at grazing views,
+    /// [`crate::seen`]) (docs/forward-model.md, "Line sweeps").
     pub fn forward() -> Self {
         BvndfConfig {
             n_theta: 24,
             n_phi: 32,
             clusters: 32,
-            rays: 512,
-            seen_rays: 8192,
-            seen_phi: 128,
+            rays: 1024,
+            seen_rays: 65_536,
+            seen_phi: 512,
             ..BvndfConfig::default()
         }
     }
@@ -122,6 +124,11 @@ impl BvndfConfig {
         }
     }
 }
+
+/// The most seen rays per heightmap cell and direction: more no longer pays on tall fBm (a
+/// sweep's rays share their vertical plane; 16 per cell on a 64² map gave 3.72 %, 4 per cell
+/// 3.98 %, docs/forward-model.md "Line sweeps"), and a small map would sweep for nothing.
+pub const SEEN_PER_CELL: usize = 16;
 
 /// Floats stored per (node pair, cluster).
 pub(crate) const STRIDE: usize = 9;
@@ -265,14 +272,15 @@ impl CompactBvndf {
         let origins = ray_lattice(hf.width(), hf.height(), cfg.rays);
         let n_rays = origins.len() as f64;
         let n_nodes = grid.len();
-        let seen_origins = (cfg.seen_rays > cfg.rays)
-            .then(|| ray_lattice(hf.width(), hf.height(), cfg.seen_rays))
-            .filter(|o| o.len() > origins.len());
+        // First hits per direction for the seen areas (line sweeps, so not limited to one per
+        // cell like the marched rays' lattice), at most SEEN_PER_CELL per cell.
+        let seen_rays = cfg.seen_rays.min(SEEN_PER_CELL * hf.width() * hf.height());
+        let seen_count = (seen_rays > origins.len()).then_some(seen_rays);
         // The fine grid has a whole multiple of the pair grid's azimuths, so it holds its nodes.
         let seen_table = (cfg.seen_phi > np).then(|| {
             // The seen rays' origins (or the marched rays'), at every direction of the table:
             // the control variate reads its rows at the pair table's directions from it.
-            let rays = seen_origins.as_deref().unwrap_or(&origins);
+            let rays = seen_count.unwrap_or(origins.len());
             let centroid_z: Vec<f64> = facets
                 .iter()
                 .map(|f| (f.v[0].z + f.v[1].z + f.v[2].z) / 3.0)
@@ -286,12 +294,13 @@ impl CompactBvndf {
                 kc,
                 cfg.seen_bands,
                 DirGrid::new(cfg.n_theta, cfg.seen_phi.div_ceil(np) * np),
+                cfg.seen_phi.div_ceil(np),
                 rays,
             )
         });
         // faces[k * n_nodes + a]: every facet of cluster k faces node a, so the part of the
         // cluster seen from b that a does not see is occlusion by other geometry only.
-        let faces: Vec<bool> = if seen_origins.is_some() {
+        let faces: Vec<bool> = if seen_count.is_some() {
             let mut min_dot = vec![f64::INFINITY; kc * n_nodes];
             let dirs: Vec<Vec3> = (0..n_nodes).map(|a| grid.direction(a)).collect();
             for (n, &k) in normals.iter().zip(&assign) {
@@ -328,7 +337,7 @@ impl CompactBvndf {
                         continue;
                     }
                     let wgt = per_ray / c;
-                    if seen_origins.is_some() {
+                    if seen_count.is_some() {
                         let m = moments(n);
                         let e = &mut seen_small[assign[f] as usize];
                         for q in 0..STRIDE {
@@ -358,7 +367,7 @@ impl CompactBvndf {
                         }
                     }
                 }
-                if let Some(big) = &seen_origins {
+                if let Some(big) = seen_count {
                     // Control variate: jointly visible = seen from b - occluded towards a. The
                     // seen part comes from the denser first hits, the occluded part from the
                     // marched rays (their seen minus their jointly visible moments).

@@ -148,7 +148,9 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
                     geo.clusters,
                     geo.grid.len(),
                     job.bvndf.rays,
-                    job.bvndf.seen_rays,
+                    job.bvndf
+                        .seen_rays
+                        .min(crate::bvndf::SEEN_PER_CELL * hf.width() * hf.height()),
                     match &geo.seen {
                         Some(t) => format!(
                             "seen table of {} directions × {} height bands",

@@ -56,8 +56,9 @@ struct BvndfArgs {
     /// libraries' grid).
     #[arg(long, default_value_t = BvndfConfig::forward().rays as u32, value_parser = clap::value_parser!(u32).range(16..=1_048_576))]
     rays: u32,
-    /// First hits per grid direction for the area seen from it, without horizon marches (a
-    /// control variate for the view rays' noise; 0: off, as in the libraries).
+    /// First hits per grid direction for the area seen from it, without horizon marches, by
+    /// line sweeps (a control variate for the view rays' noise, and the fine seen table's rows;
+    /// at most 16 per heightmap cell are cast; at most `--rays`: off, as in the libraries).
     #[arg(long, default_value_t = BvndfConfig::forward().seen_rays as u32, value_parser = clap::value_parser!(u32).range(0..=1_048_576))]
     seen_rays: u32,
     /// Azimuths of the fine table of the area seen from each direction (first hits only, one

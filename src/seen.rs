@@ -29,15 +29,21 @@
 //! `(n·wo)`-weighted mean normal at the pair and interpolated from the pair table's nodes; the
 //! jointly visible mean normal is turned by the rotation between the two ([`Correction::turn`]).
 //!
-//! The rows are estimated from stratified first hits ([`seen_moments`]) with the seen rays'
-//! origins at every direction (one per cell at 128²), and also hold each cluster's 9 moments
-//! of [`crate::bvndf`], which the pair table's seen-area control variate reads at its own
-//! directions instead of casting the same rays again. Fewer rays make the factor noisy where the
-//! surface is rough: on the tall fBm of `bench accuracy --cases 24 --seed 1` (case 15: 2.67 %
-//! without the table) 1024 and 4096 first hits per direction gave 4.63 % and 3.02 % (a setting
+//! The rows are estimated from first hits by line sweeps ([`seen_moments`],
+//! [`Visibility::seen_facets`]: the rays of one vertical plane resolved in one pass down its
+//! profile), `seen_rays` per direction, and also hold each cluster's 9 moments of
+//! [`crate::bvndf`], which the pair table's seen-area control variate reads at its own
+//! directions instead of casting the same rays again. Only the polar rows from 80° down cast
+//! rays at every azimuth; a row nearer the zenith casts them at every [`row_stride`]-th and
+//! interpolates between (what a view sees changes with its azimuth as fast as its rays reach
+//! across the relief, `tan(theta)`). Fewer rays make the factor noisy where the surface is
+//! rough: on the tall fBm of `bench accuracy --cases 24 --seed 1` (case 15: 2.67 % without the
+//! table) 1024 and 4096 first hits per direction gave 4.63 % and 3.02 % (single rays, a setting
 //! since removed), one per cell 2.85 % with 8 bands and 2.64 % with 4 (the bands split a
-//! cluster's hits; fewer bands, less noise). On the tall bumps 4 bands give 3.24 %, 8 give
-//! 3.31 % (docs/forward-model.md).
+//! cluster's hits; fewer bands, less noise). A sweep's rays share their vertical plane, so they
+//! are less independent than single rays: it takes about 16 of them per cell to match one
+//! single ray per cell on tall fBm, at a fraction of the cost (docs/forward-model.md, "Line
+//! sweeps").
 //!
 //! [`BvndfConfig::seen_phi`]: crate::bvndf::BvndfConfig::seen_phi
 //! [`BvndfConfig::seen_bands`]: crate::bvndf::BvndfConfig::seen_bands
@@ -70,9 +76,9 @@ pub struct SeenTable {
 
 /// What the first hits from `w` see, per cluster (facet `f` in cluster `assign[f]`, `kc`
 /// clusters): `Σ A n` and `Σ A n nᵀ` over the seen area, and, when `band` (per facet) is given,
-/// `Σ A n` over the seen area of each of `nb` bands (`[cluster][band]`). One first hit per ray
-/// origin (`origins`, in cell units: each ray carries the projected area `w.z / origins.len()`,
-/// in units of `A_base`).
+/// `Σ A n` over the seen area of each of `nb` bands (`[cluster][band]`). About `rays` first
+/// hits, by line sweeps ([`Visibility::seen_facets`]; each ray carries the projected area
+/// `w.z / rays`, in units of `A_base`).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn seen_moments(
     vis: &Visibility,
@@ -82,33 +88,34 @@ pub(crate) fn seen_moments(
     band: &[u8],
     nb: usize,
     w: Vec3,
-    origins: &[(f64, f64)],
+    rays: usize,
 ) -> (Vec<[f64; STRIDE]>, Vec<Vec3>) {
     let mut out = vec![[0.0f64; STRIDE]; kc];
     let mut banded = vec![Vec3::default(); if band.is_empty() { 0 } else { kc * nb }];
-    if w.z <= 0.0 || origins.is_empty() {
+    if w.z <= 0.0 || rays == 0 {
         return (out, banded);
     }
-    let per_ray = w.z / origins.len() as f64;
-    let dir = vis.direction(w);
-    for &(u, v) in origins {
-        let (_, f) = vis.first_hit_dir(u, v, &dir);
+    let visit = |f: usize| {
         let n = normals[f];
         let c = n.dot(w);
         if c <= 1e-9 {
-            continue;
+            return;
         }
         let k = assign[f] as usize;
         let m = moments(n);
         let e = &mut out[k];
         for q in 0..STRIDE {
-            e[q] += per_ray / c * m[q];
+            e[q] += m[q] / c;
         }
         if let Some(&h) = band.get(f) {
             let b = &mut banded[k * nb + h as usize];
-            *b = *b + n * (per_ray / c);
+            *b = *b + n * (1.0 / c);
         }
-    }
+    };
+    let n = vis.seen_facets(&vis.direction(w), rays, visit);
+    let per_ray = w.z / n as f64;
+    out.iter_mut().flatten().for_each(|x| *x *= per_ray);
+    banded.iter_mut().for_each(|b| *b = *b * per_ray);
     (out, banded)
 }
 
@@ -118,6 +125,21 @@ fn band_of(z: f64, z0: f64, z1: f64, nb: usize) -> u8 {
         return 0;
     }
     (((z - z0) / (z1 - z0) * nb as f64) as usize).min(nb - 1) as u8
+}
+
+/// Views at or above this polar angle cast rays at every azimuth of the fine table.
+const FULL_THETA_DEG: f64 = 80.0;
+
+/// Of `ratio` fine azimuths per pair-table azimuth, every how many a polar row at `theta` casts
+/// rays: the largest divisor of `ratio` at most `tan(80°) / tan(theta)`. What a view sees
+/// changes with its azimuth about as fast as the horizontal reach of its rays, `tan(theta)`
+/// times the relief, so a row nearer the zenith needs proportionally fewer azimuths.
+pub(crate) fn row_stride(theta: f64, ratio: usize) -> usize {
+    let want = FULL_THETA_DEG.to_radians().tan() / theta.tan();
+    (1..=ratio.max(1))
+        .rev()
+        .find(|s| ratio.is_multiple_of(*s) && (*s as f64) <= want)
+        .unwrap_or(1)
 }
 
 /// Node weights as the grid gives them, without the zero ones.
@@ -132,7 +154,10 @@ fn dot(w: Vec3, e: &[f32]) -> f64 {
 
 impl SeenTable {
     /// The table on `grid` for clusters `assign` (`kc` of them) and `bands` height bands of the
-    /// facets' centroids (`centroid_z`), `origins` the ray origins at every node.
+    /// facets' centroids (`centroid_z`), about `rays` first hits at every node. `grid` has a
+    /// whole multiple `ratio` of the pair table's azimuths; each polar row casts rays only at
+    /// every [`row_stride`]-th azimuth and interpolates the seen sums between them linearly in
+    /// azimuth (the facing sums are exact at every node).
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn build(
         vis: &Visibility,
@@ -143,7 +168,8 @@ impl SeenTable {
         kc: usize,
         bands: usize,
         grid: DirGrid,
-        origins: &[(f64, f64)],
+        ratio: usize,
+        rays: usize,
     ) -> Self {
         let nb = bands.clamp(1, 255);
         let (z0, z1) = centroid_z
@@ -152,11 +178,42 @@ impl SeenTable {
                 (a.min(z), b.max(z))
             });
         let band: Vec<u8> = centroid_z.iter().map(|&z| band_of(z, z0, z1, nb)).collect();
-        let rows: Vec<(Vec<f32>, Vec<f32>)> = (0..grid.len())
+        let np = grid.n_phi;
+        let strides: Vec<usize> = grid.thetas.iter().map(|&t| row_stride(t, ratio)).collect();
+        let cast: Vec<usize> = (0..grid.len())
+            .filter(|&b| (b % np).is_multiple_of(strides[b / np]))
+            .collect();
+        let rows: Vec<(Vec<f64>, Vec<Vec3>)> = cast
+            .par_iter()
+            .map(|&b| {
+                let (m, seen) =
+                    seen_moments(vis, normals, assign, kc, &band, nb, grid.direction(b), rays);
+                (m.concat(), seen)
+            })
+            .collect();
+        let mut slot = vec![usize::MAX; grid.len()];
+        for (i, &b) in cast.iter().enumerate() {
+            slot[b] = i;
+        }
+        let per_node: Vec<(Vec<f32>, Vec<f32>)> = (0..grid.len())
             .into_par_iter()
             .map(|b| {
                 let w = grid.direction(b);
-                let (m, seen) = seen_moments(vis, normals, assign, kc, &band, nb, w, origins);
+                let (it, j) = (b / np, b % np);
+                let s = strides[it];
+                let j0 = j - j % s;
+                let t = (j - j0) as f64 / s as f64;
+                let ends = [
+                    (slot[grid.node(it, j0)], 1.0 - t),
+                    (slot[grid.node(it, (j0 + s) % np)], t),
+                ];
+                let mut m = vec![0.0f64; kc * STRIDE];
+                let mut seen = vec![Vec3::default(); kc * nb];
+                for &(i, v) in ends.iter().filter(|e| e.1 != 0.0) {
+                    let (rm, rs) = &rows[i];
+                    m.iter_mut().zip(rm).for_each(|(x, y)| *x += v * y);
+                    seen.iter_mut().zip(rs).for_each(|(x, y)| *x = *x + *y * v);
+                }
                 let mut facing = vec![Vec3::default(); kc * nb];
                 for (f, n) in normals.iter().enumerate() {
                     if n.dot(w) > 0.0 {
@@ -169,10 +226,10 @@ impl SeenTable {
                     .zip(&facing)
                     .flat_map(|(s, f)| [s.x, s.y, s.z, f.x, f.y, f.z].map(|x| x as f32))
                     .collect();
-                (m.iter().flat_map(|e| e.map(|x| x as f32)).collect(), banded)
+                (m.iter().map(|&x| x as f32).collect(), banded)
             })
             .collect();
-        let (moments, banded): (Vec<Vec<f32>>, Vec<Vec<f32>>) = rows.into_iter().unzip();
+        let (moments, banded): (Vec<Vec<f32>>, Vec<Vec<f32>>) = per_node.into_iter().unzip();
         SeenTable {
             grid,
             clusters: kc,
@@ -353,6 +410,7 @@ mod tests {
     use crate::bvndf::{BvndfConfig, CompactBvndf};
     use crate::frame::{dir_from_deg, Vec3};
     use crate::generators::parse_generator;
+    use crate::seen::row_stride;
 
     fn table_of(spec: &str) -> CompactBvndf {
         let hf = parse_generator(spec).unwrap().build().unwrap();
@@ -373,6 +431,23 @@ mod tests {
     /// At a pair of the pair table's nodes the model's value and its interpolation are the same
     /// rows, so nothing is rescaled; and the seen areas add up to `a_v(wo) = cos(theta_o)` there
     /// (every first hit faces its ray).
+    #[test]
+    fn rows_nearer_the_zenith_cast_at_fewer_azimuths() {
+        // Every grazing row casts at every azimuth, the zenith's at the pair table's only, and
+        // a stride always divides the ratio (the pair table's azimuths are always cast).
+        for ratio in [1, 4, 6, 16] {
+            assert_eq!(row_stride(0.0, ratio), ratio);
+            assert_eq!(row_stride(80f64.to_radians(), ratio), 1);
+            assert_eq!(row_stride(88.5f64.to_radians(), ratio), 1);
+            let mut last = ratio;
+            for d in 0..=88 {
+                let s = row_stride((d as f64).to_radians(), ratio);
+                assert!(ratio % s == 0 && s <= last, "{ratio} {d}: {s}");
+                last = s;
+            }
+        }
+    }
+
     #[test]
     fn at_the_pair_tables_nodes_nothing_is_rescaled() {
         let geo = table_of("bumps:n=32,count=13,radius=8.245,height=5.546,seed=7");
