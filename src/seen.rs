@@ -33,7 +33,7 @@
 //! [`Visibility::seen_facets`]: the rays of one vertical plane resolved in one pass down its
 //! profile), `seen_rays` per direction, and also hold each cluster's 9 moments of
 //! [`crate::bvndf`], which the pair table's seen-area control variate reads at its own
-//! directions instead of casting the same rays again. Only the polar rows from 80° down cast
+//! directions instead of casting the same rays again. The polar rows at 80° and beyond cast
 //! rays at every azimuth; a row nearer the zenith casts them at every [`row_stride`]-th and
 //! interpolates between (what a view sees changes with its azimuth as fast as its rays reach
 //! across the relief, `tan(theta)`). Fewer rays make the factor noisy where the surface is
