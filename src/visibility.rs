@@ -643,7 +643,8 @@ pub fn ray_lattice(w: usize, h: usize, rays: usize) -> Vec<(f64, f64)> {
 /// crossings `(x_i, 0) + s_k (dx, dy)`, `0 <= s_k < len`. Sheared along the view, one period
 /// is still one period: every point of the torus is `(x, 0) + s (dx, dy)` for exactly one
 /// `x` in `[0, W)` and `s` in `[0, H / |dy|)`, so the crossings are uniform over it (stratified
-/// across and along the lines, staggered by a golden-ratio offset per line).
+/// across and along the lines, each line and each crossing jittered within its stratum by
+/// irrational offsets).
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct LineRays {
     pub lines: usize,
