@@ -317,13 +317,13 @@ pub fn accuracy(
     Ok(format!(
         "Fast vs exact evaluator (exact: {s}×{s} view rays per cell from both ends{sharp}): relative RMS error over \
          the 490 default pairs, {cases} random cases, seed {seed}; compact BVNDF: {} × {} grid, {} \
-         rays per direction (+ {} seen rays), {} clusters, {} sub-lobes, {}; its builds took {build_s:.1} s in all \
+         surface points for the pairs (+ {} seen rays per direction), {} clusters, {} sub-lobes, {}; its builds took {build_s:.1} s in all \
          ({:.3} s per geometry)\n\n\
          | pairs | median | 90th percentile | max | cases ≤ 3 % |\n|---|---|---|---|---|\n{}{}\n\
          | case | geometry | material | all pairs | theta ≤ 85° |\n|---|---|---|---|---|\n{rows}",
         cfg.n_theta,
         cfg.n_phi,
-        cfg.rays,
+        cfg.points,
         cfg.seen_rays,
         cfg.clusters,
         cfg.sub_lobes,

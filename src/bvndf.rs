@@ -28,30 +28,32 @@
 //!   and turned together so that their `(n·wo)`-weighted mean normal is the visible one. The
 //!   libraries keep one vMF per cluster ([`BvndfConfig::library`]).
 //!
-//! The moments are integrated with view rays, as the exact evaluator does: for each node `b`,
-//! stratified rays from `b` ([`BvndfConfig::rays`]) find the points `b` sees
-//! ([`Visibility::first_hit`]), and at each hit one horizon march per azimuth
-//! ([`Visibility::horizon`]) answers its visibility from every polar node of that azimuth at once.
-//! Sampling in the view's projection is what gets the thin visible rims of steep walls at grazing
-//! angles right (sampling facet points instead gave 22 % error on bricks, rays 2 %). The table is
-//! symmetric in `(a, b)`; only `a <= b` is stored, estimated from the rays of `b`, the more grazing
-//! node.
+//! The moments are integrated over points spread on the surface ([`crate::jointvis`],
+//! [`BvndfConfig::points`]): one horizon march per azimuth at each point says which polar nodes
+//! of that azimuth see it, and the pair table is a 2-D histogram of those counts per pair of
+//! azimuths. Half the points are spread by area (steep facets take more, in proportion to how
+//! much of a grazing view they can fill: the thin rims of walls a grazing view sees), half are
+//! the first hits of rays from every node (what a view sees of a wall far taller than wide), each
+//! weighted by both densities. View rays from each direction, the estimator before the points,
+//! cost a march per azimuth at every hit of every direction, each serving one column. The table
+//! is symmetric in `(a, b)`; only `a <= b` is stored.
 //!
 //! Optionally ([`BvndfConfig::seen_rays`]) a denser set of first hits without marches estimates
-//! the area seen from `b`, as a control variate: jointly visible = seen from `b` − hidden from
-//! `a`, the seen part from the dense hits and the hidden part (seen minus jointly visible) from
-//! the marched rays. It is applied to the clusters whose every facet faces both nodes, where
-//! the hidden part is occlusion by other geometry only; the estimate stays unbiased and loses
-//! most of the marched rays' noise on rough surfaces.
+//! the area seen from `b`, as a control variate for the views `b` beyond 85° (which the points'
+//! shares are not sized for): jointly visible = seen from `b` − hidden from `a`, the seen part
+//! from the dense hits and the hidden part (seen minus jointly visible) from the points. It is
+//! applied to the clusters whose every facet faces both nodes, where the hidden part is
+//! occlusion by other geometry only; the estimate stays unbiased.
 
 use crate::dirgrid::DirGrid;
 use crate::facetindex::FacetIndex;
 use crate::frame::Vec3;
 use crate::heightfield::Heightfield;
+use crate::jointvis::{joint_moments, GRAZING_DEG};
 use crate::material::Material;
 use crate::seen::{seen_moments, Correction, SeenTable};
 use crate::sublobes::{cluster_shapes, Shape};
-use crate::visibility::{ray_lattice, Visibility};
+use crate::visibility::Visibility;
 use crate::vmf::{kappa_from_resultant, Vmf};
 use rayon::prelude::*;
 
@@ -62,18 +64,19 @@ pub struct BvndfConfig {
     pub n_phi: usize,
     /// Number of normal clusters (lobes per direction pair).
     pub clusters: usize,
-    /// View rays per grid direction (rounded to a whole number of cells per ray).
-    pub rays: usize,
+    /// Points spread over the surface for the pair table ([`crate::jointvis`]), about: each
+    /// point's horizon marches (one per azimuth) serve every direction.
+    pub points: usize,
     /// Sub-lobes per curved cluster: its whole normal distribution split further, for materials
     /// with a glossy lobe. 1: every cluster is one vMF, as in the libraries.
     pub sub_lobes: usize,
     /// First hits per grid direction for the area seen from it (no horizon marches, by line
     /// sweeps, [`crate::visibility::Visibility::seen_facets`]): a control variate for the
-    /// jointly visible moments, and the rows of the fine seen table. At most the marched rays'
-    /// count: off.
+    /// jointly visible moments, and the rows of the fine seen table. 0: off (the seen table
+    /// too).
     pub seen_rays: usize,
     /// Azimuths of the fine table of the area seen from each direction ([`crate::seen`]), which
-    /// corrects the pair table's interpolation. At most `n_phi`: off.
+    /// corrects the pair table's interpolation. At most `n_phi`, or no seen rays: off.
     pub seen_phi: usize,
     /// Height bands of that table's model of joint visibility (1: the two ends independent).
     pub seen_bands: usize,
@@ -85,7 +88,7 @@ impl Default for BvndfConfig {
             n_theta: 10,
             n_phi: 16,
             clusters: 16,
-            rays: 1024,
+            points: 16_384,
             sub_lobes: 16,
             seen_rays: 0,
             seen_phi: 0,
@@ -97,17 +100,19 @@ impl Default for BvndfConfig {
 impl BvndfConfig {
     /// The `forward` command's default: 24 polar nodes and 32 azimuths (grazing views on
     /// grooves: 16 polar nodes left tall sine grooves at 3.3 % up to 85°), 32 normal clusters
-    /// (visibility that selects part of a rough surface's normals), 1024 marched view rays and
-    /// 65,536 first hits per direction for the area seen from it (a control variate that removes
-    /// most of the view rays' noise on rough surfaces, `seen_rays`; line sweeps make them
-    /// cheap), and the fine seen table on 512 azimuths (tall surfaces at grazing views,
-    /// [`crate::seen`]) (docs/forward-model.md, "Line sweeps").
+    /// (visibility that selects part of a rough surface's normals), 262,144 surface points for
+    /// the pair table (half by area, half first hits from the grid's directions; past 65,536
+    /// the tallest surfaces gain a few tenths of a point), 65,536 first hits per direction for
+    /// the area seen from it (a control variate for the views beyond 85°, `seen_rays`; line
+    /// sweeps make them cheap), and the fine seen table on 512 azimuths (tall surfaces at
+    /// grazing views, [`crate::seen`]) (docs/forward-model.md, "Points on the surface" and
+    /// "Line sweeps").
     pub fn forward() -> Self {
         BvndfConfig {
             n_theta: 24,
             n_phi: 32,
             clusters: 32,
-            rays: 1024,
+            points: 262_144,
             seen_rays: 65_536,
             seen_phi: 512,
             ..BvndfConfig::default()
@@ -250,37 +255,15 @@ impl CompactBvndf {
         let areas: Vec<f64> = facets.iter().map(|f| f.area / abase).collect();
         let (assign, centres) = cluster_normals(&normals, &areas, cfg.clusters);
         let kc = centres.len();
-        let nt = grid.thetas.len();
         let np = grid.n_phi;
-        let cots: Vec<f64> = grid
-            .thetas
-            .iter()
-            .map(|t| {
-                if *t == 0.0 {
-                    f64::INFINITY
-                } else {
-                    1.0 / t.tan()
-                }
-            })
-            .collect();
-        let floor = cots[nt - 1];
-        let stop = if nt > 1 { cots[1] } else { f64::INFINITY };
         let vis = Visibility::new(hf);
-        let azimuths: Vec<_> = (0..np)
-            .map(|j| vis.azimuth(grid.phi(j).cos(), grid.phi(j).sin()))
-            .collect();
-        let origins = ray_lattice(hf.width(), hf.height(), cfg.rays);
-        let n_rays = origins.len() as f64;
         let n_nodes = grid.len();
-        // First hits per direction for the seen areas (line sweeps, so not limited to one per
-        // cell like the marched rays' lattice), at most SEEN_PER_CELL per cell.
-        let seen_rays = cfg.seen_rays.min(SEEN_PER_CELL * hf.width() * hf.height());
-        let seen_count = (seen_rays > origins.len()).then_some(seen_rays);
+        // First hits per direction for the seen areas (line sweeps), at most SEEN_PER_CELL per
+        // cell.
+        let seen_count =
+            Some(cfg.seen_rays.min(SEEN_PER_CELL * hf.width() * hf.height())).filter(|&r| r > 0);
         // The fine grid has a whole multiple of the pair grid's azimuths, so it holds its nodes.
-        let seen_table = (cfg.seen_phi > np).then(|| {
-            // The seen rays' origins (or the marched rays'), at every direction of the table:
-            // the control variate reads its rows at the pair table's directions from it.
-            let rays = seen_count.unwrap_or(origins.len());
+        let seen_table = seen_count.filter(|_| cfg.seen_phi > np).map(|rays| {
             let centroid_z: Vec<f64> = facets
                 .iter()
                 .map(|f| (f.v[0].z + f.v[1].z + f.v[2].z) / 3.0)
@@ -298,106 +281,53 @@ impl CompactBvndf {
                 rays,
             )
         });
-        // faces[k * n_nodes + a]: every facet of cluster k faces node a, so the part of the
-        // cluster seen from b that a does not see is occlusion by other geometry only.
-        let faces: Vec<bool> = if seen_count.is_some() {
-            let mut min_dot = vec![f64::INFINITY; kc * n_nodes];
+        let joint = joint_moments(&vis, &facets, abase, &assign, kc, &grid, cfg.points);
+        let n_pairs = n_nodes * (n_nodes + 1) / 2;
+        let mut table = vec![0f32; n_pairs * kc * STRIDE];
+        table
+            .par_chunks_mut(kc * STRIDE)
+            .enumerate()
+            .for_each(|(pi, out)| {
+                for (c, e) in out.chunks_exact_mut(STRIDE).enumerate() {
+                    e.copy_from_slice(&joint.pairs[c][pi * STRIDE..][..STRIDE]);
+                }
+            });
+        if let Some(big) = seen_count {
+            // Control variate for the views more grazing than the points were spread for
+            // (GRAZING_DEG): jointly visible = seen from b - occluded towards a. The seen part
+            // comes from the dense first hits (the fine seen table's row at b when there is one:
+            // the same rays), the occluded part from the points (their seen minus their jointly
+            // visible moments). Only for clusters whose every facet faces both a and b, where
+            // the occluded part is occlusion by other geometry. Nearer the zenith the points
+            // alone are the better estimate (1.02 % against 1.25 % with 8192 seen rays on a
+            // rough fBm, `forward_fast.rs`).
             let dirs: Vec<Vec3> = (0..n_nodes).map(|a| grid.direction(a)).collect();
+            let mut min_dot = vec![f64::INFINITY; kc * n_nodes];
             for (n, &k) in normals.iter().zip(&assign) {
                 let row = &mut min_dot[k as usize * n_nodes..][..n_nodes];
                 for (m, d) in row.iter_mut().zip(&dirs) {
                     *m = m.min(n.dot(*d));
                 }
             }
-            min_dot.iter().map(|&m| m > 1e-9).collect()
-        } else {
-            Vec::new()
-        };
-        // Column b: entries for a <= b, [a][cluster][STRIDE].
-        let columns: Vec<Vec<[f64; STRIDE]>> = (0..n_nodes)
-            .into_par_iter()
-            .map(|b| {
-                let wb = grid.direction(b);
-                let mut col = vec![[0.0f64; STRIDE]; (b + 1) * kc];
-                let per_ray = wb.z / n_rays; // projected area per ray, in units of A_base
-                let mut t = vec![0usize; np];
-                // Column b only needs nodes a <= b, none more grazing than b's own polar node,
-                // so horizons below that node's slope need not be resolved (shorter marches).
-                let floor_b = cots[b / np].min(f64::MAX).max(floor);
-                // Only the polar node a horizon falls between matters: the march resolves it
-                // against the polar nodes' slopes from b's own up to the first ring's.
-                let levels: Vec<f64> = cots[1..=(b / np).max(1)].iter().rev().copied().collect();
-                let mut seen_small = vec![[0.0f64; STRIDE]; kc];
-                let dir = vis.direction(wb);
-                for &(u, v) in &origins {
-                    let (p, f) = vis.first_hit_dir(u, v, &dir);
-                    let n = facets[f].n;
-                    let c = n.dot(wb);
-                    if c <= 1e-9 {
-                        continue;
-                    }
-                    let wgt = per_ray / c;
-                    if seen_count.is_some() {
-                        let m = moments(n);
-                        let e = &mut seen_small[assign[f] as usize];
+            let faces = |k: usize, a: usize| min_dot[k * n_nodes + a] > 1e-9;
+            let rows: Vec<Vec<[f64; STRIDE]>> = (0..n_nodes)
+                .into_par_iter()
+                .map(|b| match &seen_table {
+                    Some(t) => t.moments_at(t.node_of(&grid, b)),
+                    None => seen_moments(&vis, &normals, &assign, kc, &[], 1, dirs[b], big).0,
+                })
+                .collect();
+            for (b, row) in rows.iter().enumerate() {
+                if grid.thetas[b / np] <= GRAZING_DEG.to_radians() {
+                    continue;
+                }
+                for a in 0..=b {
+                    let pi = pair_index(a, b);
+                    for k in (0..kc).filter(|&k| faces(k, a) && faces(k, b)) {
+                        let e = &mut table[(pi * kc + k) * STRIDE..][..STRIDE];
                         for q in 0..STRIDE {
-                            e[q] += wgt * m[q];
+                            e[q] = (e[q] as f64 + row[k][q] - joint.seen[b][k][q]) as f32;
                         }
-                    }
-                    for (jj, az) in azimuths.iter().enumerate() {
-                        let h = if b < np {
-                            vis.horizon_along(p.x, p.y, p.z, az, floor_b, stop)
-                        } else {
-                            vis.horizon_level(p.x, p.y, p.z, az, &levels)
-                        };
-                        t[jj] = cots.iter().take_while(|&&ct| ct >= h).count();
-                    }
-                    let m = moments(n);
-                    let k = assign[f] as usize;
-                    for (ja, &ta) in t.iter().enumerate() {
-                        for ia in 0..ta {
-                            let a = grid.node(ia, ja);
-                            if a > b {
-                                break;
-                            }
-                            let e = &mut col[a * kc + k];
-                            for q in 0..STRIDE {
-                                e[q] += wgt * m[q];
-                            }
-                        }
-                    }
-                }
-                if let Some(big) = seen_count {
-                    // Control variate: jointly visible = seen from b - occluded towards a. The
-                    // seen part comes from the denser first hits, the occluded part from the
-                    // marched rays (their seen minus their jointly visible moments).
-                    // The fine seen table's row at this node when there is one (the same rays).
-                    let seen_big = match &seen_table {
-                        Some(t) => t.moments_at(t.node_of(&grid, b)),
-                        None => seen_moments(&vis, &normals, &assign, kc, &[], 1, wb, big).0,
-                    };
-                    for a in 0..=b {
-                        for k in 0..kc {
-                            if faces[k * n_nodes + a] && faces[k * n_nodes + b] {
-                                let e = &mut col[a * kc + k];
-                                for q in 0..STRIDE {
-                                    e[q] += seen_big[k][q] - seen_small[k][q];
-                                }
-                            }
-                        }
-                    }
-                }
-                col
-            })
-            .collect();
-        let n_pairs = n_nodes * (n_nodes + 1) / 2;
-        let mut table = vec![0f32; n_pairs * kc * STRIDE];
-        for (b, col) in columns.iter().enumerate() {
-            for a in 0..=b {
-                let pi = pair_index(a, b);
-                for c in 0..kc {
-                    for q in 0..STRIDE {
-                        table[(pi * kc + c) * STRIDE + q] = col[a * kc + c][q] as f32;
                     }
                 }
             }

@@ -144,10 +144,10 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
             log(
                 job.quiet,
                 format!(
-                    "fast: compact BVNDF ({} lobes, {} directions, {} view rays + {} seen rays per direction, {}, {:.2} MB) built in {:.1} ms",
+                    "fast: compact BVNDF ({} lobes, {} directions, pairs from {} surface points, {} seen rays per direction, {}, {:.2} MB) built in {:.1} ms",
                     geo.clusters,
                     geo.grid.len(),
-                    job.bvndf.rays,
+                    job.bvndf.points,
                     job.bvndf
                         .seen_rays
                         .min(crate::bvndf::SEEN_PER_CELL * hf.width() * hf.height()),

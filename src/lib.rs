@@ -32,6 +32,7 @@ pub mod exact;
 pub mod facetindex;
 pub mod fast;
 pub mod gamma;
+pub mod jointvis;
 pub mod lightlobes;
 pub mod prefilter;
 pub mod seen;

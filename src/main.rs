@@ -52,13 +52,15 @@ struct BvndfArgs {
     /// accurate at grazing angles along grooves).
     #[arg(long, default_value_t = BvndfConfig::forward().n_phi as u16, value_parser = clap::value_parser!(u16).range(3..=128))]
     n_phi: u16,
-    /// View rays per grid direction, each with a horizon march per azimuth (1024 in the
+    /// Points spread over the surface for the pair table (about; at least one per facet), each
+    /// with one horizon march per azimuth that serves every direction (16,384 in the
     /// libraries' grid).
-    #[arg(long, default_value_t = BvndfConfig::forward().rays as u32, value_parser = clap::value_parser!(u32).range(16..=1_048_576))]
-    rays: u32,
+    #[arg(long, default_value_t = BvndfConfig::forward().points as u32, value_parser = clap::value_parser!(u32).range(1..=16_777_216))]
+    points: u32,
     /// First hits per grid direction for the area seen from it, without horizon marches, by
-    /// line sweeps (a control variate for the view rays' noise, and the fine seen table's rows;
-    /// at most 16 per heightmap cell are cast; at most `--rays`: off, as in the libraries).
+    /// line sweeps (a control variate for the pair table at grazing views, and the fine seen
+    /// table's rows; at most 16 per heightmap cell are cast; 0: off, with the seen table, as in
+    /// the libraries).
     #[arg(long, default_value_t = BvndfConfig::forward().seen_rays as u32, value_parser = clap::value_parser!(u32).range(0..=1_048_576))]
     seen_rays: u32,
     /// Azimuths of the fine table of the area seen from each direction (first hits only, one
@@ -79,7 +81,7 @@ impl BvndfArgs {
             n_theta: self.n_theta as usize,
             n_phi: self.n_phi as usize,
             clusters: self.clusters as usize,
-            rays: self.rays as usize,
+            points: self.points as usize,
             sub_lobes: self.sub_lobes as usize,
             seen_rays: self.seen_rays as usize,
             seen_phi: self.seen_phi as usize,

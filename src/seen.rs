@@ -420,7 +420,7 @@ mod tests {
                 n_theta: 8,
                 n_phi: 8,
                 clusters: 8,
-                rays: 256,
+                points: 4096,
                 seen_rays: 1024,
                 seen_phi: 32,
                 ..BvndfConfig::default()

@@ -431,14 +431,14 @@ fn fast_build_settings_reach_the_bvndf() {
         "10",
         "--n-phi",
         "16",
-        "--rays",
-        "256",
+        "--points",
+        "16384",
         "--seen-rays",
         "0",
     ]);
     assert!(log_fine.contains("160 directions"), "{log_fine}");
     assert!(
-        log_fine.contains("256 view rays + 0 seen rays"),
+        log_fine.contains("16384 surface points, 0 seen rays"),
         "{log_fine}"
     );
     assert_ne!(default, fine);
