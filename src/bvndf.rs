@@ -119,6 +119,30 @@ impl BvndfConfig {
         }
     }
 
+    /// About the most memory, in bytes, that [`CompactBvndf::build`] holds at once with these
+    /// settings on `threads` threads: the pair table twice (the points' per-cluster tables,
+    /// then the interleaved one), one histogram per thread ([`crate::jointvis`]) and the fine
+    /// seen table. The facets and points are not counted (tens of MB at 128²).
+    pub fn peak_bytes(&self, threads: usize) -> f64 {
+        let nt = self.n_theta.max(2) as f64;
+        let np = self.n_phi.max(3) as f64;
+        let nodes = nt * np;
+        let kc = self.clusters.max(1) as f64;
+        let table = nodes * (nodes + 1.0) / 2.0 * kc * STRIDE as f64 * 4.0;
+        let hist = threads.max(1) as f64
+            * (np * (np + 1.0) / 2.0)
+            * (nt + 2.0).powi(2)
+            * STRIDE as f64
+            * 8.0;
+        let seen = if self.seen_rays > 0 && self.seen_phi > self.n_phi {
+            let phi = (self.seen_phi.div_ceil(self.n_phi.max(3)) * self.n_phi.max(3)) as f64;
+            nt * phi * kc * (STRIDE + 6 * self.seen_bands) as f64 * 4.0
+        } else {
+            0.0
+        };
+        2.0 * table + hist + seen
+    }
+
     /// The representation the libraries store ([`crate::lightlobes`]): one vMF per cluster. Looks
     /// that are compared with library items (the solvers' targets and re-evaluations) use it, so
     /// that a library combination reproduces its own look.

@@ -62,6 +62,15 @@ pub struct ForwardResult {
     pub csv: String,
 }
 
+/// The memory the system says is available (`MemAvailable` of `/proc/meminfo`), in bytes;
+/// `None` where that is not known.
+fn available_memory() -> Option<f64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024.0)
+}
+
 fn log(quiet: bool, msg: impl AsRef<str>) {
     if !quiet {
         eprintln!("biscale forward: {}", msg.as_ref());
@@ -139,6 +148,25 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
             v
         }
         Method::Fast => {
+            let need = job.bvndf.peak_bytes(rayon::current_num_threads());
+            if let Some(have) = available_memory() {
+                if need > have {
+                    return Err(Error::new(
+                        "--n-theta, --n-phi, --clusters",
+                        format!(
+                            "the compact BVNDF of {} × {} directions and {} clusters needs about \
+                             {:.1} GB and {:.1} GB is available; expected a smaller grid or \
+                             fewer clusters (the default needs about {:.1} GB)",
+                            job.bvndf.n_theta,
+                            job.bvndf.n_phi,
+                            job.bvndf.clusters,
+                            need / 1e9,
+                            have / 1e9,
+                            BvndfConfig::forward().peak_bytes(rayon::current_num_threads()) / 1e9
+                        ),
+                    ));
+                }
+            }
             let t = Instant::now();
             let geo = CompactBvndf::build(&hf, &job.bvndf);
             log(

@@ -187,6 +187,17 @@ fn nonsense_input_is_rejected_clearly() {
         a.extend([opt.to_string(), "0".to_string()]);
         run(a, &[opt, "1..=64"]);
     }
+    // A grid whose table cannot fit in memory (8192 directions, 64 clusters: about 150 GB)
+    // is refused before it is built, naming the options and the sizes.
+    let mut a = base("vgroove:n=16", "lambert:albedo=0.5", pairs_s);
+    let m = a.iter().position(|s| s == "--method").unwrap();
+    a[m + 1] = "fast".to_string();
+    a.extend(
+        ["--n-theta", "64", "--n-phi", "128", "--clusters", "64"]
+            .iter()
+            .map(|s| s.to_string()),
+    );
+    run(a, &["--n-theta", "--n-phi", "GB"]);
 }
 
 /// Options out of their ranges fail before any work (no library is opened or built), naming the
