@@ -95,24 +95,31 @@ pub(crate) fn seen_moments(
     if w.z <= 0.0 || rays == 0 {
         return (out, banded);
     }
-    let visit = |f: usize| {
-        let n = normals[f];
-        let c = n.dot(w);
+    // Hits are counted per facet during the sweeps and weighted afterwards, once per facet hit:
+    // the sweeps' inner loop only counts.
+    let mut hits = vec![0u32; normals.len()];
+    let n = vis.seen_facets(&vis.direction(w), rays, |f| hits[f] += 1);
+    for (f, &count) in hits.iter().enumerate() {
+        if count == 0 {
+            continue;
+        }
+        let nf = normals[f];
+        let c = nf.dot(w);
         if c <= 1e-9 {
-            return;
+            continue;
         }
         let k = assign[f] as usize;
-        let m = moments(n);
+        let m = moments(nf);
+        let x = count as f64 / c;
         let e = &mut out[k];
         for q in 0..STRIDE {
-            e[q] += m[q] / c;
+            e[q] += m[q] * x;
         }
         if let Some(&h) = band.get(f) {
             let b = &mut banded[k * nb + h as usize];
-            *b = *b + n * (1.0 / c);
+            *b = *b + nf * x;
         }
-    };
-    let n = vis.seen_facets(&vis.direction(w), rays, visit);
+    }
     let per_ray = w.z / n as f64;
     out.iter_mut().flatten().for_each(|x| *x *= per_ray);
     banded.iter_mut().for_each(|b| *b = *b * per_ray);

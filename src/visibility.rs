@@ -773,9 +773,12 @@ impl Visibility<'_> {
                 }
                 continue;
             };
-            // Ray k's height at distance r of the sweep: m (s_top - r - s_k).
+            // Ray k's height at distance r of the sweep: m (s_top - r - s_k), for s_k = lr.s(i, k)
+            // (kept for the next ray down, `s_next`, as the sweep compares it at every
+            // breakpoint).
             let mut k = lr.per_line;
-            let ray_z = |k: usize, r: f64| m * (s_top - r - lr.s(i, k));
+            let ray_z = |s_k: f64, r: f64| m * (s_top - r - s_k);
+            let mut s_next = lr.s(i, k - 1);
             let mut prev = (0.0, self.hf.surface_height(px, py));
             let mut idx = [0i64; 3];
             let at = |f: usize, j: i64| -> (f64, f64) {
@@ -815,11 +818,15 @@ impl Visibility<'_> {
                 // Every ray whose height the surface reaches in this segment (one facet).
                 let mid = 0.5 * (prev.0 + cur.0);
                 let mut facet = None;
-                while k > 0 && (prev.1 >= ray_z(k - 1, prev.0) || cur.1 >= ray_z(k - 1, cur.0)) {
+                while k > 0 && (prev.1 >= ray_z(s_next, prev.0) || cur.1 >= ray_z(s_next, cur.0)) {
                     k -= 1;
+                    let s_k = s_next;
+                    if k > 0 {
+                        s_next = lr.s(i, k - 1);
+                    }
                     let f = *facet
                         .get_or_insert_with(|| self.facet_at(px - mid * al.dx, py - mid * al.dy));
-                    let (g0, g1) = (prev.1 - ray_z(k, prev.0), cur.1 - ray_z(k, cur.0));
+                    let (g0, g1) = (prev.1 - ray_z(s_k, prev.0), cur.1 - ray_z(s_k, cur.0));
                     let r = if g0 >= 0.0 {
                         prev.0
                     } else {
@@ -829,7 +836,7 @@ impl Visibility<'_> {
                         i,
                         k,
                         f,
-                        Vec3::new(px - r * al.dx, py - r * al.dy, ray_z(k, r)),
+                        Vec3::new(px - r * al.dx, py - r * al.dy, ray_z(s_k, r)),
                     );
                 }
                 if last {
