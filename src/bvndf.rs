@@ -190,8 +190,9 @@ pub struct CompactBvndf {
     pub seen: Option<SeenTable>,
 }
 
+/// The index of the node pair `(a, b)` (either order) in the table's pair order.
 #[inline]
-fn pair_index(a: usize, b: usize) -> usize {
+pub(crate) fn pair_index(a: usize, b: usize) -> usize {
     let (lo, hi) = if a <= b { (a, b) } else { (b, a) };
     hi * (hi + 1) / 2 + lo
 }
@@ -334,17 +335,21 @@ impl CompactBvndf {
                 }
             }
             let faces = |k: usize, a: usize| min_dot[k * n_nodes + a] > 1e-9;
-            let rows: Vec<Vec<[f64; STRIDE]>> = (0..n_nodes)
+            // Nodes are ordered by polar angle, so the grazing ones are the last rows.
+            let first = np
+                * grid
+                    .thetas
+                    .iter()
+                    .take_while(|&&t| t <= GRAZING_DEG.to_radians())
+                    .count();
+            let rows: Vec<Vec<[f64; STRIDE]>> = (first..n_nodes)
                 .into_par_iter()
                 .map(|b| match &seen_table {
                     Some(t) => t.moments_at(t.node_of(&grid, b)),
                     None => seen_moments(&vis, &normals, &assign, kc, &[], 1, dirs[b], big).0,
                 })
                 .collect();
-            for (b, row) in rows.iter().enumerate() {
-                if grid.thetas[b / np] <= GRAZING_DEG.to_radians() {
-                    continue;
-                }
+            for (b, row) in (first..n_nodes).zip(&rows) {
                 for a in 0..=b {
                     let pi = pair_index(a, b);
                     for k in (0..kc).filter(|&k| faces(k, a) && faces(k, b)) {

@@ -29,10 +29,11 @@
 //!
 //! Points of one facet with the same counts have the same weight and are merged.
 
-use crate::bvndf::{moments, STRIDE};
+use crate::bvndf::{moments, pair_index, STRIDE};
 use crate::dirgrid::DirGrid;
 use crate::frame::Vec3;
 use crate::heightfield::Facet;
+use crate::rng::R2;
 use crate::visibility::Visibility;
 use rayon::prelude::*;
 
@@ -40,9 +41,6 @@ use rayon::prelude::*;
 /// share of points by area. Views beyond it take their seen areas from line sweeps as well
 /// ([`crate::bvndf`]'s control variate).
 pub(crate) const GRAZING_DEG: f64 = 85.0;
-
-/// R2 sequence steps (Roberts' generalised golden ratio in two dimensions).
-const R2: (f64, f64) = (0.754_877_666_246_692_8, 0.569_840_290_998_053_2);
 
 /// The jointly visible moments of each cluster. `pairs[k]` holds cluster `k`'s entries for the
 /// node pairs `a <= b` in the compact BVNDF's pair order (`b (b + 1) / 2 + a`), `STRIDE` numbers
@@ -303,7 +301,7 @@ pub(crate) fn joint_moments(
                 let (ib, jb) = (b / np, b % np);
                 for a in 0..=b {
                     let e = at(a / np, a % np, ib, jb);
-                    let out = &mut pairs[(b * (b + 1) / 2 + a) * STRIDE..][..STRIDE];
+                    let out = &mut pairs[pair_index(a, b) * STRIDE..][..STRIDE];
                     for q in 0..STRIDE {
                         out[q] = e[q] as f32;
                     }
@@ -387,7 +385,7 @@ mod tests {
             for a in 0..=b {
                 for k in 0..kc {
                     for q in 0..STRIDE {
-                        let g = got.pairs[k][(b * (b + 1) / 2 + a) * STRIDE + q] as f64;
+                        let g = got.pairs[k][pair_index(a, b) * STRIDE + q] as f64;
                         let w = want[((b * n + a) * kc + k) * STRIDE + q];
                         worst = worst.max((g - w).abs());
                     }

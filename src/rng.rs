@@ -3,6 +3,11 @@
 //! Kept in the crate (a dozen lines) rather than taken from `rand`, so that the same seed gives the
 //! same geometry, library and file bytes whatever version of a dependency is resolved.
 
+/// The steps of the R2 low-discrepancy sequence (Roberts' generalised golden ratio in two
+/// dimensions: `1/g` and `1/g²` for the plastic number `g`): point `i` is
+/// `frac(x0 + i · R2)`. For deterministic stratified samples where a random draw is not wanted.
+pub const R2: (f64, f64) = (0.754_877_666_246_692_7, 0.569_840_290_998_053_2);
+
 /// xoshiro256++ (Blackman & Vigna), seeded from a `u64` with SplitMix64.
 #[derive(Debug, Clone)]
 pub struct Rng {

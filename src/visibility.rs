@@ -24,6 +24,7 @@
 use crate::fastmath::floor;
 use crate::frame::Vec3;
 use crate::heightfield::Heightfield;
+use crate::rng::R2;
 
 /// Breakpoints closer than this (grid units) to the start are skipped: the start's own facet is
 /// handled by the next breakpoint, and tiny `s` would amplify rounding in `(h - p_z)/s`.
@@ -708,10 +709,7 @@ impl LineRays {
         // Each crossing jittered within its stratum by the R2 sequence (irrational offsets): a
         // whole line at one offset samples every cell it crosses at the same place and aliases
         // with the lattice (on fBm at 4096 rays, the seen mean normal 3-4× as far off).
-        let jitter = (0.5
-            + (i + 1) as f64 * 0.754_877_666_246_692_7
-            + (k + 1) as f64 * 0.569_840_290_998_053_2)
-            .fract();
+        let jitter = (0.5 + (i + 1) as f64 * R2.0 + (k + 1) as f64 * R2.1).fract();
         (k as f64 + jitter) * self.len / self.per_line as f64
     }
 }
