@@ -266,12 +266,11 @@ pub fn cluster_normals(normals: &[Vec3], weights: &[f64], k: usize) -> (Vec<u16>
 }
 
 impl CompactBvndf {
-    /// Build the compact BVNDF of `hf`. For every node `b`, stratified rays arriving from `b`
-    /// (about [`BvndfConfig::rays`] of them) find the surface points `b` sees, each standing for
-    /// the area `(A_base cos theta_b / N) / (n·w_b)`; at each hit the horizon of every azimuth
-    /// gives its visibility from every node `a` at once. Thin visible rims of steep walls at
-    /// grazing angles get rays in proportion to their projected area, which sampling the surface
-    /// itself misses. The entry `(a <= b)` is estimated from the rays of `b`, the more grazing.
+    /// Build the compact BVNDF of `hf`: cluster the facet normals, integrate the pair table over
+    /// points on the surface (about [`BvndfConfig::points`]; at each point one horizon march per
+    /// azimuth gives its visibility from every node at once, [`crate::jointvis`]), and, with
+    /// [`BvndfConfig::seen_rays`], correct the views beyond 85° with the dense first hits and
+    /// build the fine seen table.
     pub fn build(hf: &Heightfield, cfg: &BvndfConfig) -> Self {
         let grid = DirGrid::new(cfg.n_theta, cfg.n_phi);
         let facets = hf.facets();

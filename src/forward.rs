@@ -181,8 +181,9 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
                         .min(crate::bvndf::SEEN_PER_CELL * hf.width() * hf.height()),
                     match &geo.seen {
                         Some(t) => format!(
-                            "seen table of {} directions × {} height bands",
+                            "seen table of {} directions ({} cast) × {} height bands",
                             t.grid.len(),
+                            t.cast,
                             t.bands
                         ),
                         None => "no seen table".to_string(),

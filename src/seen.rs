@@ -33,10 +33,13 @@
 //! [`Visibility::seen_facets`]: the rays of one vertical plane resolved in one pass down its
 //! profile), `seen_rays` per direction, and also hold each cluster's 9 moments of
 //! [`crate::bvndf`], which the pair table's seen-area control variate reads at its own
-//! directions instead of casting the same rays again. The polar rows at 80° and beyond cast
-//! rays at every azimuth; a row nearer the zenith casts them at every [`row_stride`]-th and
-//! interpolates between (what a view sees changes with its azimuth as fast as its rays reach
-//! across the relief, `tan(theta)`). Fewer rays make the factor noisy where the surface is
+//! directions instead of casting the same rays again. The polar rows at 80° and beyond may cast
+//! rays at every azimuth; a row nearer the zenith at most at every [`row_stride`]-th (what a
+//! view sees changes with its azimuth as fast as its rays reach across the relief,
+//! `tan(theta)`). Within those bounds the rows are refined adaptively ([`refine_rows`]): an
+//! interval between cast azimuths is split only where its middle's seen areas are not the
+//! linear interpolation of its ends', and the azimuths left out are interpolated. Fewer rays
+//! make the factor noisy where the surface is
 //! rough: on the tall fBm of `bench accuracy --cases 24 --seed 1` (case 15: 2.67 % without the
 //! table) 1024 and 4096 first hits per direction gave 4.63 % and 3.02 % (single rays, a setting
 //! since removed), one per cell 2.85 % with 8 bands and 2.64 % with 4 (the bands split a
@@ -72,6 +75,8 @@ pub struct SeenTable {
     /// from the nodes' own projected areas (two scalars, an earlier form not kept) gave 3.45 %
     /// instead of 3.31 % (8 bands).
     pub banded: Vec<f32>,
+    /// How many of the nodes cast rays ([`refine_rows`]); the others are interpolated.
+    pub cast: usize,
 }
 
 /// What the first hits from `w` see, per cluster (facet `f` in cluster `assign[f]`, `kc`
@@ -134,7 +139,7 @@ fn band_of(z: f64, z0: f64, z1: f64, nb: usize) -> u8 {
     (((z - z0) / (z1 - z0) * nb as f64) as usize).min(nb - 1) as u8
 }
 
-/// Views at or above this polar angle cast rays at every azimuth of the fine table.
+/// Views at or above this polar angle may cast rays at every azimuth of the fine table.
 const FULL_THETA_DEG: f64 = 80.0;
 
 /// Of `ratio` fine azimuths per pair-table azimuth, every how many a polar row at `theta` casts
@@ -147,6 +152,87 @@ pub(crate) fn row_stride(theta: f64, ratio: usize) -> usize {
         .rev()
         .find(|s| ratio.is_multiple_of(*s) && (*s as f64) <= want)
         .unwrap_or(1)
+}
+
+/// One cast row of the fine table: a node's 9 moments per cluster (concatenated) and its seen
+/// `Σ A n` per cluster and band.
+type Row = (Vec<f64>, Vec<Vec3>);
+
+/// How far, as a share of the area seen from a direction (`a_v`), a cast row may be from the
+/// linear interpolation of its neighbours in the row, in every cluster's band, for the
+/// azimuths between them to be interpolated rather than cast ([`refine_rows`]).
+const SMOOTH_TOL: f64 = 0.002;
+
+/// The rows of the fine table that are cast, by adaptive refinement in azimuth: every
+/// pair-table azimuth (every `ratio`-th) first, then, in each polar row, the middle of every
+/// interval whose ends are further apart than the row's [`row_stride`]; an interval whose
+/// middle agrees with the linear interpolation of its ends to [`SMOOTH_TOL`] is not split
+/// further (what a view sees there changes linearly with its azimuth, as on grooves and walls),
+/// the others are split in two. `cast` computes rows, in parallel, for a list of nodes. Returns
+/// the row of every cast node.
+fn refine_rows(
+    grid: &DirGrid,
+    ratio: usize,
+    cast: &dyn Fn(&[usize]) -> Vec<Row>,
+) -> Vec<Option<Row>> {
+    let np = grid.n_phi;
+    let ratio = ratio.max(1);
+    let strides: Vec<usize> = grid.thetas.iter().map(|&t| row_stride(t, ratio)).collect();
+    let mut rows: Vec<Option<Row>> = vec![None; grid.len()];
+    let first: Vec<usize> = (0..grid.len())
+        .filter(|b| (b % np).is_multiple_of(ratio))
+        .collect();
+    for (&b, r) in first.iter().zip(cast(&first)) {
+        rows[b] = Some(r);
+    }
+    // Intervals `(polar row, first azimuth, length)` still to split; lengths are multiples of
+    // the row's stride.
+    let mut todo: Vec<(usize, usize, usize)> = (0..grid.thetas.len())
+        .filter(|&it| ratio >= 2 * strides[it])
+        .flat_map(|it| (0..np).step_by(ratio).map(move |j| (it, j, ratio)))
+        .collect();
+    while !todo.is_empty() {
+        let mid = |&(it, j, s): &(usize, usize, usize)| j + (s / strides[it] / 2) * strides[it];
+        let nodes: Vec<usize> = todo.iter().map(|iv| grid.node(iv.0, mid(iv))).collect();
+        let new = cast(&nodes);
+        let mut next = Vec::new();
+        for (iv, (&b, r)) in todo.iter().zip(nodes.iter().zip(new)) {
+            let (it, j, s) = *iv;
+            let m = mid(iv);
+            let t = (m - j) as f64 / s as f64;
+            let ends = (
+                rows[grid.node(it, j)].as_ref(),
+                rows[grid.node(it, (j + s) % np)].as_ref(),
+            );
+            let linear = match ends {
+                (Some(a), Some(c)) => agrees(&r.1, &a.1, &c.1, t, grid.direction(b)),
+                _ => false,
+            };
+            rows[b] = Some(r);
+            if !linear {
+                for (j0, len) in [(j, m - j), (m, j + s - m)] {
+                    if len >= 2 * strides[it] {
+                        next.push((it, j0, len));
+                    }
+                }
+            }
+        }
+        todo = next;
+    }
+    rows
+}
+
+/// Whether the seen sums `mid` (per cluster and band) agree with `(1 - t) a + t c` to
+/// [`SMOOTH_TOL`] of the area seen from `w`, projected on `w`.
+fn agrees(mid: &[Vec3], a: &[Vec3], c: &[Vec3], t: f64, w: Vec3) -> bool {
+    let area: f64 = mid.iter().map(|x| x.dot(w)).sum();
+    if !(area > 0.0) {
+        return false;
+    }
+    let tol = SMOOTH_TOL * area;
+    mid.iter()
+        .zip(a.iter().zip(c))
+        .all(|(m, (a, c))| ((*a * (1.0 - t) + *c * t).dot(w) - m.dot(w)).abs() <= tol)
 }
 
 /// Node weights as the grid gives them, without the zero ones.
@@ -162,9 +248,9 @@ fn dot(w: Vec3, e: &[f32]) -> f64 {
 impl SeenTable {
     /// The table on `grid` for clusters `assign` (`kc` of them) and `bands` height bands of the
     /// facets' centroids (`centroid_z`), about `rays` first hits at every node. `grid` has a
-    /// whole multiple `ratio` of the pair table's azimuths; each polar row casts rays only at
-    /// every [`row_stride`]-th azimuth and interpolates the seen sums between them linearly in
-    /// azimuth (the facing sums are exact at every node).
+    /// whole multiple `ratio` of the pair table's azimuths; each polar row casts rays at the
+    /// azimuths [`refine_rows`] picks (at most every [`row_stride`]-th) and interpolates the
+    /// seen sums between them linearly in azimuth (the facing sums are exact at every node).
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn build(
         vis: &Visibility,
@@ -186,40 +272,52 @@ impl SeenTable {
             });
         let band: Vec<u8> = centroid_z.iter().map(|&z| band_of(z, z0, z1, nb)).collect();
         let np = grid.n_phi;
-        let strides: Vec<usize> = grid.thetas.iter().map(|&t| row_stride(t, ratio)).collect();
-        let cast: Vec<usize> = (0..grid.len())
-            .filter(|&b| (b % np).is_multiple_of(strides[b / np]))
-            .collect();
-        let rows: Vec<(Vec<f64>, Vec<Vec3>)> = cast
-            .par_iter()
-            .map(|&b| {
-                let (m, seen) =
-                    seen_moments(vis, normals, assign, kc, &band, nb, grid.direction(b), rays);
-                (m.concat(), seen)
-            })
-            .collect();
-        let mut slot = vec![usize::MAX; grid.len()];
-        for (i, &b) in cast.iter().enumerate() {
-            slot[b] = i;
+        let cast = |nodes: &[usize]| -> Vec<Row> {
+            nodes
+                .par_iter()
+                .map(|&b| {
+                    let (m, seen) =
+                        seen_moments(vis, normals, assign, kc, &band, nb, grid.direction(b), rays);
+                    (m.concat(), seen)
+                })
+                .collect()
+        };
+        let rows = refine_rows(&grid, ratio, &cast);
+        let n_cast = rows.iter().filter(|r| r.is_some()).count();
+        // Per node, the cast azimuths of its row on either side (the node itself if cast).
+        let (mut before, mut after) = (vec![0usize; grid.len()], vec![0usize; grid.len()]);
+        for it in 0..grid.thetas.len() {
+            let on = |j: usize| rows[grid.node(it, j % np)].is_some();
+            for j in 0..np {
+                let back = (0..np).find(|&d| on(j + np - d)).unwrap_or(0);
+                let ahead = (0..np).find(|&d| on(j + d)).unwrap_or(0);
+                before[grid.node(it, j)] = (j + np - back) % np;
+                after[grid.node(it, j)] = j + ahead;
+            }
         }
         let per_node: Vec<(Vec<f32>, Vec<f32>)> = (0..grid.len())
             .into_par_iter()
             .map(|b| {
                 let w = grid.direction(b);
                 let (it, j) = (b / np, b % np);
-                let s = strides[it];
-                let j0 = j - j % s;
-                let t = (j - j0) as f64 / s as f64;
+                let (j0, j1) = (before[b], after[b]);
+                let span = (j1 + np - j0) % np;
+                let t = if span == 0 {
+                    0.0
+                } else {
+                    ((j + np - j0) % np) as f64 / span as f64
+                };
                 let ends = [
-                    (slot[grid.node(it, j0)], 1.0 - t),
-                    (slot[grid.node(it, (j0 + s) % np)], t),
+                    (&rows[grid.node(it, j0)], 1.0 - t),
+                    (&rows[grid.node(it, j1 % np)], t),
                 ];
                 let mut m = vec![0.0f64; kc * STRIDE];
                 let mut seen = vec![Vec3::default(); kc * nb];
-                for &(i, v) in ends.iter().filter(|e| e.1 != 0.0) {
-                    let (rm, rs) = &rows[i];
-                    m.iter_mut().zip(rm).for_each(|(x, y)| *x += v * y);
-                    seen.iter_mut().zip(rs).for_each(|(x, y)| *x = *x + *y * v);
+                for (row, v) in ends.iter().filter(|e| e.1 != 0.0) {
+                    if let Some((rm, rs)) = row {
+                        m.iter_mut().zip(rm).for_each(|(x, y)| *x += v * y);
+                        seen.iter_mut().zip(rs).for_each(|(x, y)| *x = *x + *y * *v);
+                    }
                 }
                 let mut facing = vec![Vec3::default(); kc * nb];
                 for (f, n) in normals.iter().enumerate() {
@@ -243,6 +341,7 @@ impl SeenTable {
             bands: nb,
             moments: moments.concat(),
             banded: banded.concat(),
+            cast: n_cast,
         }
     }
 
@@ -415,9 +514,10 @@ impl Correction {
 #[cfg(test)]
 mod tests {
     use crate::bvndf::{BvndfConfig, CompactBvndf};
+    use crate::dirgrid::DirGrid;
     use crate::frame::{dir_from_deg, Vec3};
     use crate::generators::parse_generator;
-    use crate::seen::row_stride;
+    use crate::seen::{refine_rows, row_stride, Row};
 
     fn table_of(spec: &str) -> CompactBvndf {
         let hf = parse_generator(spec).unwrap().build().unwrap();
@@ -451,6 +551,69 @@ mod tests {
                 let s = row_stride((d as f64).to_radians(), ratio);
                 assert!(ratio % s == 0 && s <= last, "{ratio} {d}: {s}");
                 last = s;
+            }
+        }
+    }
+
+    /// Adaptive refinement: where the seen sums change linearly with the azimuth one level of
+    /// middles is cast and found to agree, so the rest is interpolated; near a kink the row is
+    /// split down to its stride; the pair table's azimuths are always cast.
+    #[test]
+    fn rows_are_refined_only_where_they_bend() {
+        let grid = DirGrid::new(6, 128);
+        let ratio = 16;
+        // One cluster and band whose seen `Σ A n` points up and whose size, as a function of
+        // azimuth, is a triangle wave with its corners at the pair table's azimuths (every 45°,
+        // so linear between them), plus, in the grazing rows only, a ramp from 95° to 105°.
+        let value = |b: usize| -> f64 {
+            let w = grid.direction(b);
+            let x = (b % grid.n_phi) as f64 * 8.0 / grid.n_phi as f64;
+            let f = x.fract();
+            let tri = if (x.floor() as usize).is_multiple_of(2) {
+                f
+            } else {
+                1.0 - f
+            };
+            let phi = x * 45.0;
+            let ramp = if w.z < 0.2 {
+                0.3 * (phi - 95.0).clamp(0.0, 10.0) / 10.0
+            } else {
+                0.0
+            };
+            0.5 + tri + ramp
+        };
+        let cast = |nodes: &[usize]| -> Vec<Row> {
+            nodes
+                .iter()
+                .map(|&b| (Vec::new(), vec![Vec3::Z * value(b)]))
+                .collect()
+        };
+        let rows = refine_rows(&grid, ratio, &cast);
+        let np = grid.n_phi;
+        for it in 0..grid.thetas.len() {
+            let cast_at: Vec<usize> = (0..np)
+                .filter(|&j| rows[grid.node(it, j)].is_some())
+                .collect();
+            assert!((0..np).step_by(ratio).all(|j| cast_at.contains(&j)));
+            let stride = row_stride(grid.thetas[it], ratio);
+            if grid.direction(grid.node(it, 0)).z >= 0.2 {
+                // Linear everywhere: the pair table's azimuths and one middle per interval
+                // (where the row's stride allows one).
+                let want = if stride * 2 <= ratio {
+                    2 * np / ratio
+                } else {
+                    np / ratio
+                };
+                assert_eq!(cast_at.len(), want, "row {it}: {cast_at:?}");
+            } else {
+                // The ramp's corners (azimuths 33.8 and 37.3 of 128) are resolved to the row's
+                // stride.
+                assert_eq!(stride, 1);
+                assert!(
+                    [33, 34, 37, 38].iter().all(|j| cast_at.contains(j)),
+                    "row {it}: {cast_at:?}"
+                );
+                assert!(cast_at.len() < np / 2, "row {it}: {cast_at:?}");
             }
         }
     }
