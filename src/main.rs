@@ -362,7 +362,7 @@ enum FinalArg {
 enum LibraryCmd {
     /// Build a library from a profile (profiles/library/<name>.toml or a path), whole or one shard.
     Build {
-        /// Profile name (a file of profiles/library/: tiny, default, paper16, paper4, paper-materials, paper) or
+        /// Profile name (a file of profiles/library/: tiny, default, paper16, paper4, paper2, paper-materials, paper) or
         /// path to a profile TOML.
         #[arg(long, default_value = "default")]
         profile: String,

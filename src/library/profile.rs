@@ -581,6 +581,7 @@ mod tests {
             "default",
             "paper16",
             "paper4",
+            "paper2",
             "paper-materials",
             "paper",
         ] {
