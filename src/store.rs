@@ -661,6 +661,27 @@ impl ArrayFile {
         });
     }
 
+    /// Ask the operating system to start reading the mapped data bytes `start..start + len`
+    /// into memory now (`madvise(MADV_WILLNEED)`), without waiting for them: a run that will
+    /// read many scattered ranges of a file larger than memory (a search's re-rank, thousands
+    /// of light-lobe records) asks for all of them first, so the disk serves them together
+    /// instead of one page fault at a time. A hint: a range past the data or a refusal is
+    /// ignored.
+    pub fn will_need_mapped(&self, start: usize, len: usize) {
+        let n = self.header.data_bytes();
+        if start >= n || len == 0 {
+            return;
+        }
+        #[cfg(unix)]
+        {
+            let _ = self.map.advise_range(
+                memmap2::Advice::WillNeed,
+                self.offset + start,
+                len.min(n - start),
+            );
+        }
+    }
+
     /// Copy data bytes `start..start + buf.len()` into `buf` with a positioned read instead of
     /// through the map. For streaming passes over arrays larger than memory: pages read through
     /// the map stay in this process's resident set (a randomized SVD over the 14 GB binned

@@ -231,6 +231,17 @@ impl GeometryLobes {
     }
 }
 
+impl GeometryLobes {
+    /// Start reading the records of geometries `js` into memory without waiting for them
+    /// ([`ArrayFile::will_need_mapped`]), before a pass that reads them all.
+    pub fn will_need(&self, js: &[usize]) {
+        let bytes = self.len * 4;
+        for &j in js {
+            self.file.will_need_mapped(j * bytes, bytes);
+        }
+    }
+}
+
 /// The value in `cell`, made by `make` on first use (a failure is returned, not cached).
 fn cached<T>(
     cell: &std::sync::OnceLock<Arc<T>>,

@@ -317,24 +317,30 @@ pub fn solve_with(
     // answers are `k` different geometries, which up to `k × psi` pairs may take.
     let rerank = |pool: &[usize]| -> Result<Vec<Reranked>> {
         let pool = match &data {
-            ItemData::Lobes { lobes, pf } => narrow(
-                pool.to_vec(),
-                COARSE_KEEP.max(opt.k * rots.len()),
-                rots[0].samples.pairs.len(),
-                |pool, step| {
-                    let coarse: Vec<_> = rots
-                        .iter()
-                        .map(|r| super::coarse_at(&layout, &r.samples, &r.target, step))
-                        .collect();
-                    pool.par_iter()
-                        .map(|&i| {
-                            let (_, j, ri) = scored[i];
-                            let (s, t, at) = &coarse[ri];
-                            Ok(s.rel_error_scaled(t, &lobes.get(j)?.fbar(pf, at), anyb))
-                        })
-                        .collect()
-                },
-            )?,
+            ItemData::Lobes { lobes, pf } => {
+                // The pool's records, asked for at once: from a library larger than memory
+                // the disk then serves them together rather than one fault at a time.
+                let js: Vec<usize> = pool.iter().map(|&i| scored[i].1).collect();
+                lobes.will_need(&js);
+                narrow(
+                    pool.to_vec(),
+                    COARSE_KEEP.max(opt.k * rots.len()),
+                    rots[0].samples.pairs.len(),
+                    |pool, step| {
+                        let coarse: Vec<_> = rots
+                            .iter()
+                            .map(|r| super::coarse_at(&layout, &r.samples, &r.target, step))
+                            .collect();
+                        pool.par_iter()
+                            .map(|&i| {
+                                let (_, j, ri) = scored[i];
+                                let (s, t, at) = &coarse[ri];
+                                Ok(s.rel_error_scaled(t, &lobes.get(j)?.fbar(pf, at), anyb))
+                            })
+                            .collect()
+                    },
+                )?
+            }
             ItemData::Binned { .. } => pool.to_vec(),
         };
         pool.par_iter()

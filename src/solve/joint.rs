@@ -360,6 +360,9 @@ pub fn search(
         type Group = ((usize, usize), Vec<(usize, usize)>);
         let mut groups: Vec<Group> = by_geo.into_iter().collect();
         groups.sort_by_key(|(k, _)| *k);
+        let mut geometries: Vec<usize> = groups.iter().map(|((g, _), _)| *g).collect();
+        geometries.dedup();
+        lobes.will_need(&geometries);
         let errs: Vec<Vec<(usize, f64)>> = groups
             .par_iter()
             .map(|((g, ri), ms)| {
