@@ -233,12 +233,24 @@ impl GeometryLobes {
 
 impl GeometryLobes {
     /// Start reading the records of geometries `js` into memory without waiting for them
-    /// ([`ArrayFile::will_need_mapped`]), before a pass that reads them all.
+    /// ([`ArrayFile::will_need_mapped`]), before a pass that reads them all. The requests are
+    /// made from a thread of their own, so a pass over records already in memory does not wait
+    /// for them, in the order two workers splitting `js` in halves reach the records (from the
+    /// start and from the middle, alternately).
     pub fn will_need(&self, js: &[usize]) {
         let bytes = self.len * 4;
-        for &j in js {
-            self.file.will_need_mapped(j * bytes, bytes);
-        }
+        let half = js.len().div_ceil(2);
+        let order: Vec<usize> = (0..half)
+            .flat_map(|i| [js.get(i), js.get(half + i)])
+            .flatten()
+            .copied()
+            .collect();
+        let file = self.file.clone();
+        std::thread::spawn(move || {
+            for j in order {
+                file.will_need_mapped(j * bytes, bytes);
+            }
+        });
     }
 }
 
