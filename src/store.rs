@@ -654,7 +654,8 @@ impl ArrayFile {
             (self.offset + start) as libc::off_t,
             len.min(n - start) as libc::off_t,
         );
-        std::thread::spawn(move || {
+        // A thread that cannot be made is a hint not given.
+        let _ = std::thread::Builder::new().spawn(move || {
             // SAFETY: `f` is an open file descriptor owned by this thread; the call only reads
             // its arguments.
             unsafe { libc::posix_fadvise(f.as_raw_fd(), off, len, libc::POSIX_FADV_WILLNEED) };
@@ -762,6 +763,12 @@ mod tests {
         .unwrap();
         assert_eq!(f.f32s().unwrap(), &v[..]);
         assert_eq!(f.offset % ALIGN, 0);
+        // Read-ahead hints change nothing, in range, past the data or empty.
+        for (start, len) in [(0, 4000), (1200, 10_000), (4000, 1), (9999, 5), (0, 0)] {
+            f.will_need_mapped(start, len);
+            f.will_need(start, len);
+        }
+        assert_eq!(f.f32s().unwrap(), &v[..]);
     }
 
     #[test]

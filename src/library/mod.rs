@@ -229,9 +229,7 @@ impl GeometryLobes {
             &what(),
         )
     }
-}
 
-impl GeometryLobes {
     /// Start reading the records of geometries `js` into memory without waiting for them
     /// ([`ArrayFile::will_need_mapped`]), before a pass that reads them all. The requests are
     /// made from a thread of their own, so a pass over records already in memory does not wait
@@ -246,7 +244,8 @@ impl GeometryLobes {
             .copied()
             .collect();
         let file = self.file.clone();
-        std::thread::spawn(move || {
+        // A thread that cannot be made is a hint not given.
+        let _ = std::thread::Builder::new().spawn(move || {
             for j in order {
                 file.will_need_mapped(j * bytes, bytes);
             }
