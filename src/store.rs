@@ -636,51 +636,41 @@ impl ArrayFile {
         &self.map[self.offset..]
     }
 
-    /// Ask the operating system to start reading data bytes `start..start + len` into the page
-    /// cache now (`posix_fadvise(POSIX_FADV_WILLNEED)`, issued from a thread of its own, since
-    /// queueing the reads of a large range can take a while), so that later reads find them
-    /// there. A hint: nothing is mapped into this process, and a range past the data or a
-    /// refusal is ignored.
-    pub fn will_need(&self, start: usize, len: usize) {
+    /// Ask the operating system to start reading the data byte ranges `(start, len)` into the
+    /// page cache now, in the given order (`posix_fadvise(POSIX_FADV_WILLNEED)`, issued from a
+    /// thread of its own, since queueing the reads can take a while), so that later reads find
+    /// them there: the randomized SVD's next block, or the thousands of light-lobe records a
+    /// search's re-rank is about to read from a file larger than memory, which the disk then
+    /// serves together instead of one page fault at a time. A hint: nothing is mapped into this
+    /// process, and a range past the data or a refusal is ignored.
+    pub fn will_need(&self, ranges: Vec<(usize, usize)>) {
         use std::os::fd::AsRawFd;
         let n = self.header.data_bytes();
-        if start >= n || len == 0 {
+        let base = self.offset;
+        let ranges: Vec<(libc::off_t, libc::off_t)> = ranges
+            .into_iter()
+            .filter(|&(start, len)| start < n && len > 0)
+            .map(|(start, len)| {
+                (
+                    (base + start) as libc::off_t,
+                    len.min(n - start) as libc::off_t,
+                )
+            })
+            .collect();
+        if ranges.is_empty() {
             return;
         }
         let Ok(f) = self.file.try_clone() else {
             return;
         };
-        let (off, len) = (
-            (self.offset + start) as libc::off_t,
-            len.min(n - start) as libc::off_t,
-        );
         // A thread that cannot be made is a hint not given.
         let _ = std::thread::Builder::new().spawn(move || {
-            // SAFETY: `f` is an open file descriptor owned by this thread; the call only reads
-            // its arguments.
-            unsafe { libc::posix_fadvise(f.as_raw_fd(), off, len, libc::POSIX_FADV_WILLNEED) };
+            for (off, len) in ranges {
+                // SAFETY: `f` is an open file descriptor owned by this thread; the call only
+                // reads its arguments.
+                unsafe { libc::posix_fadvise(f.as_raw_fd(), off, len, libc::POSIX_FADV_WILLNEED) };
+            }
         });
-    }
-
-    /// Ask the operating system to start reading the mapped data bytes `start..start + len`
-    /// into memory now (`madvise(MADV_WILLNEED)`), without waiting for them: a run that will
-    /// read many scattered ranges of a file larger than memory (a search's re-rank, thousands
-    /// of light-lobe records) asks for all of them first, so the disk serves them together
-    /// instead of one page fault at a time. A hint: a range past the data or a refusal is
-    /// ignored.
-    pub fn will_need_mapped(&self, start: usize, len: usize) {
-        let n = self.header.data_bytes();
-        if start >= n || len == 0 {
-            return;
-        }
-        #[cfg(unix)]
-        {
-            let _ = self.map.advise_range(
-                memmap2::Advice::WillNeed,
-                self.offset + start,
-                len.min(n - start),
-            );
-        }
     }
 
     /// Copy data bytes `start..start + buf.len()` into `buf` with a positioned read instead of
@@ -764,10 +754,13 @@ mod tests {
         assert_eq!(f.f32s().unwrap(), &v[..]);
         assert_eq!(f.offset % ALIGN, 0);
         // Read-ahead hints change nothing, in range, past the data or empty.
-        for (start, len) in [(0, 4000), (1200, 10_000), (4000, 1), (9999, 5), (0, 0)] {
-            f.will_need_mapped(start, len);
-            f.will_need(start, len);
-        }
+        f.will_need(vec![
+            (0, 4000),
+            (1200, 10_000),
+            (4000, 1),
+            (9999, 5),
+            (0, 0),
+        ]);
         assert_eq!(f.f32s().unwrap(), &v[..]);
     }
 

@@ -738,7 +738,8 @@ impl BlockSource for ItemMatrix<'_> {
     /// Items are stored one after another, so columns `cols` are one byte range.
     fn prefetch(&self, cols: Range<usize>) {
         let size = self.len * self.file.header.dtype.size();
-        self.file.will_need(cols.start * size, cols.len() * size);
+        self.file
+            .will_need(vec![(cols.start * size, cols.len() * size)]);
     }
 }
 

@@ -231,25 +231,18 @@ impl GeometryLobes {
     }
 
     /// Start reading the records of geometries `js` into memory without waiting for them
-    /// ([`ArrayFile::will_need_mapped`]), before a pass that reads them all. The requests are
-    /// made from a thread of their own, so a pass over records already in memory does not wait
-    /// for them, in the order two workers splitting `js` in halves reach the records (from the
-    /// start and from the middle, alternately).
+    /// ([`ArrayFile::will_need`]), before a pass that reads them all, in the order two
+    /// workers splitting `js` in halves reach the records (from the start and from the middle,
+    /// alternately).
     pub fn will_need(&self, js: &[usize]) {
         let bytes = self.len * 4;
         let half = js.len().div_ceil(2);
-        let order: Vec<usize> = (0..half)
+        let ranges = (0..half)
             .flat_map(|i| [js.get(i), js.get(half + i)])
             .flatten()
-            .copied()
+            .map(|&j| (j * bytes, bytes))
             .collect();
-        let file = self.file.clone();
-        // A thread that cannot be made is a hint not given.
-        let _ = std::thread::Builder::new().spawn(move || {
-            for j in order {
-                file.will_need_mapped(j * bytes, bytes);
-            }
-        });
+        self.file.will_need(ranges);
     }
 }
 
