@@ -98,6 +98,27 @@ pub fn dot32(a: &[f32], b: &[f32]) -> f64 {
     (acc.iter().sum::<f32>() + tail) as f64
 }
 
+/// `Σ (a_i − b_i)²` in `f32` with eight partial sums (vectorised), returned as `f64`: the
+/// compressed search's clamped errors, where `f32` is the data's own precision.
+#[inline]
+pub fn dist2_32(a: &[f32], b: &[f32]) -> f64 {
+    let mut acc = [0f32; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f32 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| (x - y) * (x - y))
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for i in 0..8 {
+            let d = x[i] - y[i];
+            acc[i] += d * d;
+        }
+    }
+    (acc.iter().sum::<f32>() + tail) as f64
+}
+
 /// `Σ a_i b_i` in `f64` over the shorter of the two, with eight partial sums so that the loop
 /// runs in vector registers (the sum's rounding differs from a sequential one's in the last
 /// bits). For the compressed search's per-item terms, where a sequential sum waited on each

@@ -15,10 +15,11 @@
 //! `samples` dimensions), so `P_g` for a block is `X_block · R̃` (f32); each geometry's `Q_g` and
 //! `b_g` are then written as rows `Vq_g = [Q_ac (a <= c)]` and `Vl_g = [-2 b_a]`, and every
 //! material's error at once is `Vq · Uqᵀ + Vl · Ulᵀ + |t|²` with `Uq_m = [y_a y_c]`,
-//! `Ul_m = [y_a]` (f64). Every rotation of the target is scanned at one shared sample set
-//! (rotation 0's), so only `Vl` and the last product are per rotation. On paper16 (10,277 geometries
-//! × 260 materials) this is about 4× faster than one loop per geometry (docs/solvers.md gives
-//! the measurement).
+//! `Ul_m = [y_a]`, all in f32, the CX weights' own precision (twice the f64 rate; the f64
+//! products before gave the same answers, docs/solvers.md). Every rotation of the target is
+//! scanned at one shared sample set (rotation 0's), so only `Vl` and the last product are per
+//! rotation. On paper16 (10,277 geometries × 260 materials) this is about 4× faster than one
+//! loop per geometry (docs/solvers.md gives the measurement).
 
 use super::{
     material_prefiltered, rotated_samples, smallest, Candidate, Final, Look, SolveOptions,
@@ -173,8 +174,8 @@ pub fn search(
     // diagonal), and y_a.
     let nqq = ks * (ks + 1) / 2;
     let y_of = |k: usize| &mx[materials[k] * ks..(materials[k] + 1) * ks];
-    let uq = Mat::<f64>::from_fn(materials.len(), nqq, |k, j| upper_term(y_of(k), ks, j));
-    let ul = Mat::<f64>::from_fn(materials.len(), ks, |k, j| y_of(k)[j] as f64);
+    let uq = Mat::<f32>::from_fn(materials.len(), nqq, |k, j| upper_term(y_of(k), ks, j));
+    let ul = Mat::<f32>::from_fn(materials.len(), ks, |k, j| y_of(k)[j]);
     let mut kept: Vec<Pair> = Vec::new();
     // Every rotation is scanned at one shared sample set, rotation 0's (as the geometry solver's
     // stage 1): the representative pairs, their basis and each geometry's quadratic form do not
@@ -261,7 +262,7 @@ pub fn search(
                 .collect();
             // Each geometry's Gram matrix PᵢᵀPᵢ (its d × ks block), by faer's kernels.
             let mut gram = Mat::<f32>::zeros(ks, ks);
-            let mut vqt = Mat::<f64>::zeros(nqq, gs.len());
+            let mut vqt = Mat::<f32>::zeros(nqq, gs.len());
             for i in 0..gs.len() {
                 let pi = faer::MatRef::from_column_major_slice(p.col_as_slice(i), d, ks);
                 faer::linalg::matmul::matmul(
@@ -274,10 +275,10 @@ pub fn search(
                 );
                 for j in 0..nqq {
                     let (a, c) = upper_pair(ks, j);
-                    vqt[(j, i)] = gram[(a, c)] as f64;
+                    vqt[(j, i)] = gram[(a, c)];
                 }
             }
-            let mut eq = Mat::<f64>::zeros(materials.len(), gs.len());
+            let mut eq = Mat::<f32>::zeros(materials.len(), gs.len());
             faer::linalg::matmul::matmul(
                 eq.as_mut(),
                 faer::Accum::Replace,
@@ -288,8 +289,8 @@ pub fn search(
             );
             let mut out = Vec::with_capacity(gs.len() * KEEP_PER_GEOMETRY * targets.len());
             for (ti, ((ri, _, n2), twr)) in targets.iter().zip(&twrs).enumerate() {
-                let vlt = Mat::<f64>::from_fn(ks, gs.len(), |a, i| {
-                    -2.0 * crate::fastmath::dot32(pgs[i][a], twr)
+                let vlt = Mat::<f32>::from_fn(ks, gs.len(), |a, i| {
+                    (-2.0 * crate::fastmath::dot32(pgs[i][a], twr)) as f32
                 });
                 // The quadratic terms serve every rotation: the last one takes them.
                 let mut e = if ti + 1 == targets.len() {
@@ -309,7 +310,7 @@ pub fn search(
                     // `|t - f|² - |t|²` ranks as the error does; the root only for the kept.
                     let col = e.col_as_slice(i);
                     out.extend(smallest(col, KEEP_PER_GEOMETRY).into_iter().map(|k| {
-                        let err = ((n2 + col[k]).max(0.0) / n2).sqrt();
+                        let err = ((n2 + col[k] as f64).max(0.0) / n2).sqrt();
                         Pair {
                             error: err,
                             search_error: err,
@@ -409,18 +410,18 @@ pub fn search(
 /// Entry `j` of a material's row of the scan's quadratic form: the products `y_a y_c` for
 /// `a <= c` (doubled off the diagonal, so the row dotted with the upper triangle of a symmetric
 /// `Q` is `yᵀ Q y`), then `y_a`.
-fn upper_term(y: &[f32], ks: usize, j: usize) -> f64 {
+fn upper_term(y: &[f32], ks: usize, j: usize) -> f32 {
     let mut col = 0;
     for a in 0..ks {
         for c in a..ks {
             if col == j {
                 let f = if a == c { 1.0 } else { 2.0 };
-                return f * y[a] as f64 * y[c] as f64;
+                return f * y[a] * y[c];
             }
             col += 1;
         }
     }
-    y[j - col] as f64
+    y[j - col]
 }
 
 /// The `(a, c)`, `a <= c`, of entry `j` of the upper triangle of a `ks × ks` matrix, row-major.
@@ -487,7 +488,7 @@ mod tests {
             let (a, c) = upper_pair(ks, j);
             assert!(a <= c && c < ks);
             let f = if a == c { 1.0 } else { 2.0 };
-            assert_eq!(upper_term(&y, ks, j), f * (y[a] * y[c]) as f64, "entry {j}");
+            assert_eq!(upper_term(&y, ks, j), f * y[a] * y[c], "entry {j}");
         }
     }
 }
