@@ -77,46 +77,39 @@ fn set_mxcsr(v: u32) {
     }
 }
 
-/// `Σ a_i b_i` in `f32` with eight partial sums (vectorised), returned as `f64`: the binned
-/// response's dot products ([`crate::gamma::Response`]) and the joint scan's linear terms,
-/// where `f32` is the data's own precision.
-#[inline]
-pub fn dot32(a: &[f32], b: &[f32]) -> f64 {
+/// `Σ term(a_i, b_i)` in `f32` with eight partial sums (vectorised), returned as `f64`: the
+/// loop of [`dot32`] and [`dist2_32`].
+#[inline(always)]
+fn sum32(a: &[f32], b: &[f32], term: impl Fn(f32, f32) -> f32) -> f64 {
     let mut acc = [0f32; 8];
     let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
     let tail: f32 = ca
         .remainder()
         .iter()
         .zip(cb.remainder())
-        .map(|(x, y)| x * y)
+        .map(|(&x, &y)| term(x, y))
         .sum();
     for (x, y) in ca.zip(cb) {
         for i in 0..8 {
-            acc[i] += x[i] * y[i];
+            acc[i] += term(x[i], y[i]);
         }
     }
     (acc.iter().sum::<f32>() + tail) as f64
+}
+
+/// `Σ a_i b_i` in `f32` with eight partial sums (vectorised), returned as `f64`: the binned
+/// response's dot products ([`crate::gamma::Response`]), the joint scan's linear terms and the
+/// clamped rescoring's, where `f32` is the data's own precision.
+#[inline]
+pub fn dot32(a: &[f32], b: &[f32]) -> f64 {
+    sum32(a, b, |x, y| x * y)
 }
 
 /// `Σ (a_i − b_i)²` in `f32` with eight partial sums (vectorised), returned as `f64`: the
 /// compressed search's clamped errors, where `f32` is the data's own precision.
 #[inline]
 pub fn dist2_32(a: &[f32], b: &[f32]) -> f64 {
-    let mut acc = [0f32; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let tail: f32 = ca
-        .remainder()
-        .iter()
-        .zip(cb.remainder())
-        .map(|(x, y)| (x - y) * (x - y))
-        .sum();
-    for (x, y) in ca.zip(cb) {
-        for i in 0..8 {
-            let d = x[i] - y[i];
-            acc[i] += d * d;
-        }
-    }
-    (acc.iter().sum::<f32>() + tail) as f64
+    sum32(a, b, |x, y| (x - y) * (x - y))
 }
 
 /// `Σ a_i b_i` in `f64` over the shorter of the two, with eight partial sums so that the loop
