@@ -98,19 +98,22 @@ impl Default for BvndfConfig {
 }
 
 impl BvndfConfig {
-    /// The `forward` command's default: 24 polar nodes and 32 azimuths (grazing views on
-    /// grooves: 16 polar nodes left tall sine grooves at 3.3 % up to 85°), 32 normal clusters
+    /// The `forward` command's default: 24 polar nodes and 40 azimuths (grazing views on
+    /// grooves: 16 polar nodes left tall sine grooves at 3.3 % up to 85°; at grazing views over
+    /// tall bumps, 32 azimuths left 3.1 % up to 85°, 40 give 2.5 %; 40 keep the axes and the
+    /// diagonals as nodes), 32 normal clusters
     /// (visibility that selects part of a rough surface's normals), 262,144 surface points for
     /// the pair table (half by area, half first hits from the grid's directions; past 65,536
     /// the tallest surfaces gain a few tenths of a point), 65,536 first hits per direction for
     /// the area seen from it (a control variate for the views beyond 85°, `seen_rays`; line
-    /// sweeps make them cheap), and the fine seen table on 512 azimuths (tall surfaces at
+    /// sweeps make them cheap), and the fine seen table on 520 azimuths (13 per pair-table
+    /// azimuth; `seen_phi` is rounded up to a multiple of `n_phi`) (tall surfaces at
     /// grazing views, [`crate::seen`]) (docs/forward-model.md, "Points on the surface" and
     /// "Line sweeps").
     pub fn forward() -> Self {
         BvndfConfig {
             n_theta: 24,
-            n_phi: 32,
+            n_phi: 40,
             clusters: 32,
             points: 262_144,
             seen_rays: 65_536,

@@ -48,8 +48,9 @@ struct BvndfArgs {
     /// accurate at grazing angles on tall grooves; 16: 1.7× shorter, a third of the memory).
     #[arg(long, default_value_t = BvndfConfig::forward().n_theta as u16, value_parser = clap::value_parser!(u16).range(2..=64))]
     n_theta: u16,
-    /// Azimuths of the direction grid (16 is the libraries' grid: a build about 4× shorter, less
-    /// accurate at grazing angles along grooves).
+    /// Azimuths of the direction grid (16 is the libraries' grid: a build many times shorter, less
+    /// accurate at grazing angles along grooves; 32, the previous default: up to 60 % shorter,
+    /// tall bumps at grazing views 3.1 % from the exact method up to 85° instead of 2.5 %).
     #[arg(long, default_value_t = BvndfConfig::forward().n_phi as u16, value_parser = clap::value_parser!(u16).range(3..=128))]
     n_phi: u16,
     /// Points spread over the surface for the pair table (about; at least one per facet), each
@@ -65,8 +66,8 @@ struct BvndfArgs {
     seen_rays: u32,
     /// Azimuths of the fine table of the area seen from each direction (first hits only, one
     /// row per direction), which rescales the pair table where what a grazing view sees changes
-    /// faster with its azimuth than `--n-phi` resolves (rows of bumps; at most `--n-phi`: off,
-    /// as in the libraries).
+    /// faster with its azimuth than `--n-phi` resolves (rows of bumps; rounded up to a multiple
+    /// of `--n-phi`, 520 by default; at most `--n-phi`: off, as in the libraries).
     #[arg(long, default_value_t = BvndfConfig::forward().seen_phi as u32, value_parser = clap::value_parser!(u32).range(0..=4096))]
     seen_phi: u32,
     /// Height bands of the fine table's model of joint visibility (what is seen low between

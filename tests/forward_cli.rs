@@ -435,8 +435,8 @@ fn fast_build_settings_reach_the_bvndf() {
         (stderr, fbar)
     };
     let (log_default, default) = run(&[]);
-    // 24 polar nodes × 32 azimuths.
-    assert!(log_default.contains("768 directions"), "{log_default}");
+    // 24 polar nodes × 40 azimuths.
+    assert!(log_default.contains("960 directions"), "{log_default}");
     let (log_fine, fine) = run(&[
         "--n-theta",
         "10",
