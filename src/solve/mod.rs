@@ -289,27 +289,22 @@ pub trait Score: Copy {
     fn order(&self, other: &Self) -> std::cmp::Ordering;
 }
 
-impl Score for f64 {
-    #[inline]
-    fn finite(self) -> bool {
-        self.is_finite()
-    }
-    #[inline]
-    fn order(&self, other: &Self) -> std::cmp::Ordering {
-        self.total_cmp(other)
-    }
+macro_rules! score_for_float {
+    ($($t:ty),*) => {$(
+        impl Score for $t {
+            #[inline]
+            fn finite(self) -> bool {
+                self.is_finite()
+            }
+            #[inline]
+            fn order(&self, other: &Self) -> std::cmp::Ordering {
+                self.total_cmp(other)
+            }
+        }
+    )*};
 }
 
-impl Score for f32 {
-    #[inline]
-    fn finite(self) -> bool {
-        self.is_finite()
-    }
-    #[inline]
-    fn order(&self, other: &Self) -> std::cmp::Ordering {
-        self.total_cmp(other)
-    }
-}
+score_for_float!(f64, f32);
 
 /// Indices of the `n` smallest values (ties by index), ascending.
 pub fn smallest<T: Score>(errors: &[T], n: usize) -> Vec<usize> {
