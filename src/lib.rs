@@ -34,6 +34,7 @@ pub mod fast;
 pub mod gamma;
 pub mod jointvis;
 pub mod lightlobes;
+pub mod lobecodec;
 pub mod prefilter;
 pub mod seen;
 pub mod sublobes;

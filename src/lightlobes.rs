@@ -32,7 +32,9 @@ use crate::frame::Vec3;
 use crate::gamma::GammaLayout;
 use crate::heightfield::Heightfield;
 use crate::prefilter::Prefiltered;
+use crate::lobecodec::{unscale, Frame};
 use crate::vmf::Vmf;
+use half::f16;
 use std::borrow::Cow;
 
 /// Floats per cluster in the record's header.
@@ -52,7 +54,18 @@ pub struct LightLobes<'a> {
     centres: Vec<Vec3>,
     planar: Vec<bool>,
     area: Vec<f64>,
-    record: Cow<'a, [f32]>,
+    moments: Moments<'a>,
+}
+
+/// A record's moments: the `f32` record itself, or its half-precision form
+/// ([`crate::lobecodec`]) with the clusters' frames.
+#[derive(Debug, Clone)]
+enum Moments<'a> {
+    Single(Cow<'a, [f32]>),
+    Half {
+        body: Cow<'a, [f16]>,
+        frames: Vec<Frame>,
+    },
 }
 
 impl<'a> LightLobes<'a> {
@@ -83,19 +96,55 @@ impl<'a> LightLobes<'a> {
                 ),
             ));
         }
-        for (c, h) in record[..clusters * HEAD].chunks(HEAD).enumerate() {
-            if h.iter().any(|x| !x.is_finite()) || h[4] < 0.0 {
-                return Err(Error::new(
-                    what,
-                    format!("cluster {c} has a non-finite centre or a negative area"),
-                ));
-            }
-        }
+        check_head(&record[..clusters * HEAD], what)?;
         Ok(Self::parse(layout, clusters, record))
     }
 
+    /// A stored record in half precision ([`crate::lobecodec`]): its header `head` (`f32`,
+    /// `clusters × 5`) and its moments `body`. `what` names it in errors.
+    pub fn from_half(
+        layout: &'a GammaLayout,
+        clusters: usize,
+        head: &[f32],
+        body: Cow<'a, [f16]>,
+        what: &str,
+    ) -> Result<Self> {
+        let want = crate::lobecodec::half_len(record_len(layout, clusters), clusters);
+        if clusters == 0 || head.len() != clusters * HEAD || body.len() != want {
+            return Err(Error::new(
+                what,
+                format!(
+                    "a half-precision light-lobe record of {} + {} numbers does not match {} \
+                     clusters ({} + {} expected)",
+                    head.len(),
+                    body.len(),
+                    clusters,
+                    clusters * HEAD,
+                    want
+                ),
+            ));
+        }
+        check_head(head, what)?;
+        let frames = head.chunks(HEAD).map(Frame::of_head).collect();
+        Ok(Self::parse_head(
+            layout,
+            clusters,
+            head,
+            Moments::Half { body, frames },
+        ))
+    }
+
     fn parse(layout: &'a GammaLayout, clusters: usize, record: Cow<'a, [f32]>) -> Self {
-        let head = &record[..clusters * HEAD];
+        let head = record[..clusters * HEAD].to_vec();
+        Self::parse_head(layout, clusters, &head, Moments::Single(record))
+    }
+
+    fn parse_head(
+        layout: &'a GammaLayout,
+        clusters: usize,
+        head: &[f32],
+        moments: Moments<'a>,
+    ) -> Self {
         let centres = head
             .chunks(HEAD)
             .map(|h| {
@@ -115,40 +164,56 @@ impl<'a> LightLobes<'a> {
             centres,
             planar,
             area,
-            record,
+            moments,
         }
     }
 
-    /// The stored form.
-    pub fn record(&self) -> &[f32] {
-        &self.record
+    /// The `f32` record (`None` for a record read in half precision).
+    pub fn record(&self) -> Option<&[f32]> {
+        match &self.moments {
+            Moments::Single(r) => Some(r),
+            Moments::Half { .. } => None,
+        }
     }
 
     /// Bytes of the stored form.
     pub fn bytes(&self) -> usize {
-        self.record.len() * 4
+        match &self.moments {
+            Moments::Single(r) => r.len() * 4,
+            Moments::Half { body, .. } => self.clusters * HEAD * 4 + body.len() * 2,
+        }
     }
 
+    /// Where the seen moments at view node `b` start, in the moments' own array.
     #[inline]
-    fn seen(&self, b: usize, c: usize) -> &[f32] {
-        let off = self.clusters * HEAD + (b * self.clusters + c) * 3;
-        &self.record[off..off + 3]
+    fn seen_at(&self, b: usize) -> usize {
+        let head = match self.moments {
+            Moments::Single(_) => self.clusters * HEAD,
+            Moments::Half { .. } => 0,
+        };
+        head + b * self.clusters * 3
     }
 
-    /// The lit moments of every cluster at light `l` and view node `b`, side by side.
+    /// Where the lit moments of light `l` and view node `b` start (every cluster's, side by
+    /// side), in the moments' own array.
     #[inline]
-    fn lit_block(&self, l: usize, b: usize) -> &[f32] {
+    fn lit_at(&self, l: usize, b: usize) -> usize {
         let nv = self.layout.views.len();
-        let off = self.clusters * (HEAD + nv * 3) + (l * nv + b) * self.clusters * STRIDE;
-        &self.record[off..off + self.clusters * STRIDE]
+        self.seen_at(nv) + (l * nv + b) * self.clusters * STRIDE
     }
+}
 
-    #[inline]
-    fn lit(&self, l: usize, b: usize, c: usize) -> &[f32] {
-        let nv = self.layout.views.len();
-        let off = self.clusters * (HEAD + nv * 3) + ((l * nv + b) * self.clusters + c) * STRIDE;
-        &self.record[off..off + STRIDE]
+/// A record's cluster headers must be finite with non-negative areas.
+fn check_head(head: &[f32], what: &str) -> Result<()> {
+    for (c, h) in head.chunks(HEAD).enumerate() {
+        if h.iter().any(|x| !x.is_finite()) || h[4] < 0.0 {
+            return Err(Error::new(
+                what,
+                format!("cluster {c} has a non-finite centre or a negative area"),
+            ));
+        }
     }
+    Ok(())
 }
 
 /// Where one pair falls in a light-lobe table: its light and its view-node weights. The same
@@ -251,11 +316,20 @@ impl LightLobes<'_> {
     /// assembled, the two overlap.
     #[inline]
     fn prefetch(&self, n: &Node) {
+        let k = self.clusters;
         for &(b, vb) in &n.views {
             if vb != 0.0 {
-                let off = self.clusters * HEAD + b * self.clusters * 3;
-                crate::prefetch::read(&self.record[off..off + self.clusters * 3]);
-                crate::prefetch::read(self.lit_block(n.light, b));
+                let (s, l) = (self.seen_at(b), self.lit_at(n.light, b));
+                match &self.moments {
+                    Moments::Single(r) => {
+                        crate::prefetch::read(&r[s..s + k * 3]);
+                        crate::prefetch::read(&r[l..l + k * STRIDE]);
+                    }
+                    Moments::Half { body, .. } => {
+                        crate::prefetch::read(&body[s..s + k * 3]);
+                        crate::prefetch::read(&body[l..l + k * STRIDE]);
+                    }
+                }
             }
         }
     }
@@ -270,21 +344,41 @@ impl LightLobes<'_> {
 
     /// The lobes at a pair whose [`Node`] is `n`.
     fn lobes_at(&self, n: &Node, wi: Vec3, wo: Vec3, out: &mut Vec<(f64, Vmf)>) {
+        match &self.moments {
+            Moments::Single(r) => self.lobes_single(r, n, wi, wo, out),
+            Moments::Half { body, frames } => self.lobes_half(body, frames, n, wi, wo, out),
+        }
+    }
+
+    /// The clusters as [`assemble_lobes`] reads them.
+    fn cluster_view(&self) -> Clusters<'_> {
+        Clusters {
+            centres: &self.centres,
+            planar: &self.planar,
+            area: &self.area,
+            shapes: &[],
+            split: false,
+        }
+    }
+
+    /// [`Self::lobes_at`] from an `f32` record.
+    fn lobes_single(&self, r: &[f32], n: &Node, wi: Vec3, wo: Vec3, out: &mut Vec<(f64, Vmf)>) {
         let (l, wb) = (n.light, &n.views);
+        let k = self.clusters;
         let mut diag = 0.0;
         for &(b, vb) in wb {
             if vb == 0.0 {
                 continue;
             }
-            for c in 0..self.clusters {
-                let e = self.seen(b, c);
+            let s = self.seen_at(b);
+            for e in r[s..s + k * 3].chunks_exact(3) {
                 diag += vb * (wo.x * e[0] as f64 + wo.y * e[1] as f64 + wo.z * e[2] as f64);
             }
         }
         // Every cluster's lit moments interpolated over the view nodes, in one pass over each
         // node's contiguous block (the order of additions is `bvndf::blend`'s).
         // (Flat, so that the loop runs over whole vector registers.)
-        let n = self.clusters * STRIDE;
+        let n = k * STRIDE;
         let mut stack = [0.0f64; 32 * STRIDE];
         let mut heap = Vec::new();
         let acc: &mut [f64] = if n <= stack.len() {
@@ -297,31 +391,105 @@ impl LightLobes<'_> {
             if vb == 0.0 {
                 continue;
             }
-            for (a, &e) in acc.iter_mut().zip(self.lit_block(l, b)) {
+            let o = self.lit_at(l, b);
+            for (a, &e) in acc.iter_mut().zip(&r[o..o + n]) {
                 *a += vb * e as f64;
             }
         }
         let acc = &*acc;
-        let cl = Clusters {
-            centres: &self.centres,
-            planar: &self.planar,
-            area: &self.area,
-            shapes: &[],
-            split: false,
-        };
         assemble_lobes(
-            &cl,
+            &self.cluster_view(),
             wi,
             wo,
             &[(l, 1.0)],
             |_| wi,
             wb,
             |b| self.layout.views.direction(b),
-            &|a, b, c| self.lit(a, b, c),
+            &|a, b, c| {
+                let o = self.lit_at(a, b) + c * STRIDE;
+                &r[o..o + STRIDE]
+            },
             |c| {
                 let mut a = [0.0; STRIDE];
                 a.copy_from_slice(&acc[c * STRIDE..(c + 1) * STRIDE]);
                 a
+            },
+            None,
+            diag,
+            out,
+        );
+    }
+
+    /// [`Self::lobes_at`] from a half-precision record: the moments are interpolated in each
+    /// cluster's frame (the decoding is linear) and turned to the macro frame once.
+    fn lobes_half(
+        &self,
+        body: &[f16],
+        frames: &[Frame],
+        n: &Node,
+        wi: Vec3,
+        wo: Vec3,
+        out: &mut Vec<(f64, Vmf)>,
+    ) {
+        let (l, wb) = (n.light, &n.views);
+        let k = self.clusters;
+        let mut diag = 0.0;
+        for &(b, vb) in wb {
+            if vb == 0.0 {
+                continue;
+            }
+            let s = self.seen_at(b);
+            for (e, f) in body[s..s + k * 3].chunks_exact(3).zip(frames) {
+                let g = f.seen_global(&[e[0].to_f64(), e[1].to_f64(), e[2].to_f64()]);
+                diag += vb * wo.dot(g);
+            }
+        }
+        let n = k * STRIDE;
+        let mut acc = vec![0.0f64; n];
+        for &(b, vb) in wb {
+            if vb == 0.0 {
+                continue;
+            }
+            let o = self.lit_at(l, b);
+            for (a, e) in acc
+                .chunks_exact_mut(STRIDE)
+                .zip(body[o..o + n].chunks_exact(STRIDE))
+            {
+                for (x, y) in a.iter_mut().zip(unscale(e)) {
+                    *x += vb * y;
+                }
+            }
+        }
+        // A planar cluster is read node by node: each of its entries in the macro frame.
+        let mut ent = vec![0.0f32; if self.planar.iter().any(|&p| p) { wb.len() * n } else { 0 }];
+        if !ent.is_empty() {
+            for (i, &(b, _)) in wb.iter().enumerate() {
+                let o = self.lit_at(l, b);
+                for c in (0..k).filter(|&c| self.planar[c]) {
+                    let e = frames[c].lit_global(&unscale(&body[o + c * STRIDE..][..STRIDE]));
+                    for (x, y) in ent[(i * k + c) * STRIDE..][..STRIDE].iter_mut().zip(e) {
+                        *x = y as f32;
+                    }
+                }
+            }
+        }
+        let ent = &ent;
+        assemble_lobes(
+            &self.cluster_view(),
+            wi,
+            wo,
+            &[(l, 1.0)],
+            |_| wi,
+            wb,
+            |b| self.layout.views.direction(b),
+            &|_, b, c| {
+                let i = wb.iter().position(|v| v.0 == b).unwrap_or(0);
+                &ent[(i * k + c) * STRIDE..][..STRIDE]
+            },
+            |c| {
+                let mut a = [0.0; STRIDE];
+                a.copy_from_slice(&acc[c * STRIDE..(c + 1) * STRIDE]);
+                frames[c].lit_global(&a)
             },
             None,
             diag,
@@ -360,7 +528,7 @@ mod tests {
         let lay = GammaLayout::new(6, 8, 9);
         let hf = Heightfield::flat(16, 16);
         let ll = LightLobes::build(&lay, &hf, 64, 4);
-        assert_eq!(ll.record().len(), record_len(&lay, 4));
+        assert_eq!(ll.record().map(|r| r.len()), Some(record_len(&lay, 4)));
         let mut out = Vec::new();
         ll.lobes(lay.lights[3], dir_from_deg(50.0, 100.0), false, &mut out);
         let total: f64 = out.iter().map(|x| x.0).sum();
@@ -373,7 +541,7 @@ mod tests {
             &mut out,
         );
         assert!(out.is_empty());
-        let short = ll.record()[..10].to_vec();
+        let short = ll.record().expect("built in f32")[..10].to_vec();
         let e = LightLobes::from_record(&lay, 4, Cow::Owned(short), "x.bsa row 3").unwrap_err();
         assert!(e.to_string().contains("x.bsa row 3"), "{e}");
     }
@@ -423,6 +591,42 @@ mod tests {
                 rel < 0.05,
                 "{spec}: light lobes vs full compact BVNDF {rel}"
             );
+        }
+    }
+
+    #[test]
+    fn the_half_precision_form_gives_the_records_fbar() {
+        // Curved clusters (bumps, fBm) and planar ones (V-grooves), under a sharp and a
+        // broad glossy material, at the 7 lights and views from the zenith to 85°.
+        let lay = GammaLayout::new(10, 16, 16);
+        let pairs: Vec<DirPair> = (0..7)
+            .flat_map(|l| {
+                let wi = lay.lights[l];
+                (0..40).map(move |k| DirPair {
+                    wi,
+                    wo: dir_from_deg(85.0 * ((k * 7) % 40) as f64 / 39.0, 9.0 * k as f64),
+                })
+            })
+            .collect();
+        let at = LightPairs::new(&lay, pairs);
+        for spec in [
+            "bumps:n=48,count=6,radius=8,height=3,seed=2",
+            "fbm:n=48,amplitude=0.5,seed=3",
+            "vgroove:n=48,period=16,depth=4",
+        ] {
+            let hf = parse_generator(spec).unwrap().build().unwrap();
+            let ll = LightLobes::build(&lay, &hf, 1024, 16);
+            let rec = ll.record().expect("built in f32");
+            let (head, body) = crate::lobecodec::encode(rec, 16, lay.views.len()).unwrap();
+            let half = LightLobes::from_half(&lay, 16, &head, Cow::Owned(body), "x").unwrap();
+            assert_eq!(half.bytes() * 2, ll.bytes() + 16 * HEAD * 4);
+            for m in ["ggx:alpha=0.02,f0=0.9", "ggx:alpha=0.2+lambert:albedo=0.1"] {
+                let pf = Prefiltered::build(&parse_material(m).unwrap(), &Default::default());
+                let (a, b) = (ll.fbar(&pf, &at), half.fbar(&pf, &at));
+                let rel = crate::bench::relative_rms(&b, &a);
+                assert!(rel < 5e-4, "{spec}, {m}: half against f32 {rel}");
+                assert!(b.iter().all(|x| x.is_finite()));
+            }
         }
     }
 }

@@ -405,6 +405,11 @@ enum LibraryCmd {
         /// the library's own profile decides (no key: no finer selection).
         #[arg(long)]
         material_search_energy: Option<f64>,
+        /// First store f32 light-lobe records in half precision, as `geometry.lobe_precision =
+        /// "half"` (the default since it exists) builds them: half the bytes, the same files as
+        /// such a build. Sets that key of the library's profile.
+        #[arg(long)]
+        half_lobes: bool,
         #[arg(long, short = 'q')]
         quiet: bool,
     },
@@ -739,8 +744,9 @@ fn main() -> ExitCode {
             LibraryCmd::Refit {
                 dir,
                 material_search_energy,
+                half_lobes,
                 quiet,
-            } => biscale::library::commands::refit(&dir, material_search_energy, quiet)
+            } => biscale::library::commands::refit(&dir, material_search_energy, half_lobes, quiet)
                 .map(|t| print!("{t}")),
             LibraryCmd::Info { dir } => {
                 biscale::library::commands::info(&dir).map(|t| print!("{t}"))

@@ -2,7 +2,7 @@
 //! to precompute (and what a whole profile would cost on this machine), and how well `fbar`
 //! reconstructed from the representatives (Eq. 12) matches the exact evaluator.
 
-use super::build::{gamma_layout, geometry_data, prefilter_config};
+use super::build::{gamma_layout, geometry_data, lobe_bytes, prefilter_config};
 use super::items::{geometry_items, material_items};
 use super::profile::LibraryProfile;
 use super::progress::Progress;
@@ -49,7 +49,9 @@ pub fn speed(profile: &str, sample: usize, progress: &Progress) -> Result<String
     pick(geos.len(), sample)
         .par_iter()
         .map(|&i| {
-            let r = geometry_data(&geos[i], &layout, &prof).map(|_| ());
+            let r = geometry_data(&geos[i], &layout, &prof)
+                .and_then(|(_, lobes)| lobe_bytes(&geos[i], &layout, &prof, &lobes))
+                .map(|_| ());
             bar.inc(1);
             r
         })
@@ -67,8 +69,17 @@ pub fn speed(profile: &str, sample: usize, progress: &Progress) -> Result<String
     let tm = t.elapsed().as_secs_f64() / msample.len().max(1) as f64;
     let threads = rayon::current_num_threads();
     let gamma_mb = layout.rows() as f64 * 2.0 / 1e6;
-    let lobes_mb =
-        crate::lightlobes::record_len(&layout, prof.geometry.lobe_clusters) as f64 * 4.0 / 1e6;
+    let (k, record) = (
+        prof.geometry.lobe_clusters,
+        crate::lightlobes::record_len(&layout, prof.geometry.lobe_clusters),
+    );
+    let lobes_mb = match prof.geometry.lobe_precision {
+        super::profile::LobePrecision::Single => record * 4,
+        super::profile::LobePrecision::Half => {
+            k * crate::lightlobes::HEAD * 4 + crate::lobecodec::half_len(record, k) * 2
+        }
+    } as f64
+        / 1e6;
     let table_mb = super::build::table_len(&prof) as f64 * 4.0 / 1e6;
     let total = tg * geos.len() as f64 + tm * mats.len() as f64;
     Ok(format!(

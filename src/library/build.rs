@@ -24,7 +24,7 @@ use super::items::{
 use super::manifest::{
     ArrayEntry, CompressionReport, Manifest, ShardTimes, StageTimes, MANIFEST_VERSION,
 };
-use super::profile::LibraryProfile;
+use super::profile::{LibraryProfile, LobePrecision};
 use super::progress::{Bar, Progress, Stages};
 use crate::error::{Error, Result};
 use crate::gamma::GammaLayout;
@@ -248,11 +248,14 @@ fn build(
     }
     let geos = geometry_items(prof, base)?;
     let mats = material_items(prof, base)?;
-    let [gamma, lobes, table] = parts(prof, geos.len(), mats.len());
+    let parts = parts(prof, geos.len(), mats.len());
+    // The geometry parts (binned columns and light lobes) and the materials' tables, last.
+    let (geometry_parts, table) = parts.split_at(parts.len() - 1);
+    let geometry_parts: Vec<&Part> = geometry_parts.iter().collect();
     if force {
         // The joined arrays of an earlier merge would stand in for chunks (see `build_chunks`),
         // and an earlier build's partial arrays would be resumed.
-        for p in [&gamma, &lobes, &table] {
+        for p in &parts {
             let path = dir.join(p.joined);
             if path.exists() {
                 std::fs::remove_file(&path)
@@ -275,7 +278,7 @@ fn build(
     };
     let (n, secs) = build_chunks(
         dir,
-        &[&gamma, &lobes],
+        &geometry_parts,
         &geos,
         chunk,
         &mine,
@@ -285,17 +288,16 @@ fn build(
         stream,
         |it| {
             let (col, lobes) = geometry_data(it, &layout, prof)?;
-            Ok(vec![
-                bytemuck::cast_slice(&col).to_vec(),
-                f32_bytes(&lobes).to_vec(),
-            ])
+            let mut out = vec![bytemuck::cast_slice(&col).to_vec()];
+            out.extend(lobe_bytes(it, &layout, prof, &lobes)?);
+            Ok(out)
         },
     )?;
     rep.geometries_built = n;
     rep.geometry_seconds = secs;
     let (n, secs) = build_chunks(
         dir,
-        &[&table],
+        &[&table[0]],
         &mats,
         chunk,
         &mine,
@@ -545,6 +547,36 @@ pub fn geometry_data(
     Ok((col.into_iter().map(half::f16::from_f32).collect(), lobes))
 }
 
+/// The stored form of a geometry's light-lobe record `lobes`, one byte vector per light-lobe
+/// part of [`parts`]: the record (`single`), or its cluster headers and its moments in half
+/// precision ([`crate::lobecodec`], `half`).
+pub fn lobe_bytes(
+    it: &GeometryItem,
+    layout: &GammaLayout,
+    prof: &LibraryProfile,
+    lobes: &[f32],
+) -> Result<Vec<Vec<u8>>> {
+    match prof.geometry.lobe_precision {
+        LobePrecision::Single => Ok(vec![f32_bytes(lobes).to_vec()]),
+        LobePrecision::Half => {
+            let k = prof.geometry.lobe_clusters;
+            let (head, body) = crate::lobecodec::encode(lobes, k, layout.views.len())
+                .ok_or_else(|| {
+                    Error::new(
+                        format!("geometry item {} ({})", it.index, it.spec),
+                        "a light-lobe moment is beyond half precision's range (an area over \
+                         65,504 times the base area: a surface too tall for the library); use \
+                         geometry.lobe_precision = \"single\" in the profile",
+                    )
+                })?;
+            Ok(vec![
+                f32_bytes(&head).to_vec(),
+                bytemuck::cast_slice(&body).to_vec(),
+            ])
+        }
+    }
+}
+
 /// A library array read as the matrix `B` whose column `j` is item `j` (items stored row-major,
 /// one item after another).
 pub struct ItemMatrix<'a> {
@@ -758,39 +790,63 @@ struct Part {
     len: usize,
 }
 
-/// The three chunked arrays of a profile's library: the geometries' binned columns and light
-/// lobes (one chunk build writes both) and the materials' prefiltered tables.
-fn parts(prof: &LibraryProfile, geometries: usize, materials: usize) -> [Part; 3] {
+/// The chunked arrays of a profile's library: the geometries' binned columns and light lobes
+/// (one chunk build writes them all: with `lobe_precision = "half"` the lobes are two arrays,
+/// their cluster headers and their moments) and, last, the materials' prefiltered tables.
+fn parts(prof: &LibraryProfile, geometries: usize, materials: usize) -> Vec<Part> {
     let layout = gamma_layout(prof);
-    [
-        Part {
-            kind: "geometry",
-            chunk_name: "gamma-chunk",
-            joined: "geometry/gamma.bsa",
-            name: "gamma",
-            dtype: Dtype::F16,
-            items: geometries,
-            len: layout.rows(),
-        },
-        Part {
+    let k = prof.geometry.lobe_clusters;
+    let record = record_len(&layout, k);
+    let mut parts = vec![Part {
+        kind: "geometry",
+        chunk_name: "gamma-chunk",
+        joined: "geometry/gamma.bsa",
+        name: "gamma",
+        dtype: Dtype::F16,
+        items: geometries,
+        len: layout.rows(),
+    }];
+    match prof.geometry.lobe_precision {
+        LobePrecision::Single => parts.push(Part {
             kind: "lobes",
             chunk_name: "lobes-chunk",
             joined: "geometry/lobes.bsa",
             name: "light-lobes",
             dtype: Dtype::F32,
             items: geometries,
-            len: record_len(&layout, prof.geometry.lobe_clusters),
-        },
-        Part {
-            kind: "material",
-            chunk_name: "prefiltered-chunk",
-            joined: "material/prefiltered.bsa",
-            name: "prefiltered",
-            dtype: Dtype::F32,
-            items: materials,
-            len: table_len(prof),
-        },
-    ]
+            len: record,
+        }),
+        LobePrecision::Half => parts.extend([
+            Part {
+                kind: "lobe-heads",
+                chunk_name: "lobe-heads-chunk",
+                joined: "geometry/lobe-heads.bsa",
+                name: "light-lobe-heads",
+                dtype: Dtype::F32,
+                items: geometries,
+                len: k * crate::lightlobes::HEAD,
+            },
+            Part {
+                kind: "lobes",
+                chunk_name: "lobes-chunk",
+                joined: "geometry/lobes.bsa",
+                name: "light-lobes-half",
+                dtype: Dtype::F16,
+                items: geometries,
+                len: crate::lobecodec::half_len(record, k),
+            },
+        ]),
+    }
+    parts.push(Part {
+        kind: "material",
+        chunk_name: "prefiltered-chunk",
+        joined: "material/prefiltered.bsa",
+        name: "prefiltered",
+        dtype: Dtype::F32,
+        items: materials,
+        len: table_len(prof),
+    });
+    parts
 }
 
 impl Part {
@@ -1195,7 +1251,7 @@ pub fn merge(
     let geos = geometry_items(&prof, base)?;
     let mats = material_items(&prof, base)?;
     let parts = parts(&prof, geos.len(), mats.len());
-    let (rows, tlen) = (parts[0].len, parts[2].len);
+    let (rows, tlen) = (parts[0].len, parts[parts.len() - 1].len);
     let mut files = Vec::new();
     let t = Instant::now();
     // Each part is joined from its chunks when every chunk is there, with the right header and
@@ -1346,6 +1402,68 @@ pub fn merge(
     Ok(manifest)
 }
 
+/// Store a finished library's light lobes in `f16` ([`crate::lobecodec`]) where they are `f32`
+/// records: `geometry/lobe-heads.bsa` and a new `geometry/lobes.bsa`, each written to a
+/// temporary file and renamed into place, and listed in `files`. The result is what a build
+/// with `lobe_precision = "half"` writes (the same records, encoded the same way). Returns
+/// whether anything was converted. The way back needs a rebuild: the `f32` records are gone.
+pub fn convert_lobes_to_half(
+    dir: &Path,
+    lib: &super::Library,
+    prof: &LibraryProfile,
+    progress: &Progress,
+    files: &mut Vec<ArrayEntry>,
+) -> Result<bool> {
+    let old = lib.geometry_lobes()?;
+    if old.is_half() {
+        return Ok(false);
+    }
+    let mut half = prof.clone();
+    half.geometry.lobe_precision = LobePrecision::Half;
+    let n = old.len();
+    let parts = parts(&half, n, 0);
+    let (heads, body) = (&parts[1], &parts[2]);
+    let mut wh = ArrayWriter::create(
+        &dir.join(heads.joined),
+        heads.name,
+        heads.dtype,
+        &[n, heads.len],
+    )?;
+    let mut wb = ArrayWriter::create(&dir.join(body.joined), body.name, body.dtype, &[n, body.len])?;
+    let bar = progress.bar(n as u64, "refit: light lobes to half precision");
+    let (k, views) = (prof.geometry.lobe_clusters, old.layout.views.len());
+    for start in (0..n).step_by(256) {
+        let block: Vec<(Vec<f32>, Vec<half::f16>)> = (start..(start + 256).min(n))
+            .into_par_iter()
+            .map(|j| {
+                let ll = old.read(j)?;
+                let what = || format!("{} row {j}", old.path().display());
+                let rec = ll
+                    .record()
+                    .ok_or_else(|| Error::new(what(), "not an f32 record"))?;
+                crate::lobecodec::encode(rec, k, views).ok_or_else(|| {
+                    Error::new(
+                        what(),
+                        "a light-lobe moment is beyond half precision's range; keep \
+                         lobe_precision = \"single\"",
+                    )
+                })
+            })
+            .collect::<Result<_>>()?;
+        for (h, b) in &block {
+            wh.write(f32_bytes(h))?;
+            wb.write(bytemuck::cast_slice(b))?;
+        }
+        bar.inc(block.len() as u64);
+    }
+    let (sh, sb) = (wh.finish()?, wb.finish()?);
+    bar.finish();
+    files.retain(|f| f.path != heads.joined && f.path != body.joined);
+    files.push(entry(dir, heads.joined, sh));
+    files.push(entry(dir, body.joined, sb));
+    Ok(true)
+}
+
 /// Fit the geometry CX weights to the light lobes ([`super::lobefit`]), probed with the
 /// material representatives' tables, and write `geometry/x-lobes.bsa` (listed in `files`; an
 /// earlier entry of it is replaced). Needs the geometry and material arrays of the merge
@@ -1359,7 +1477,19 @@ pub fn fit_lobe_weights(
 ) -> Result<f64> {
     let t = Instant::now();
     let open = |rel: &str| ArrayFile::open(&dir.join(rel), &Expect::default());
-    let lobes = open("geometry/lobes.bsa")?;
+    let file = open("geometry/lobes.bsa")?;
+    let heads = match file.header.dtype {
+        Dtype::F16 => Some(std::sync::Arc::new(open("geometry/lobe-heads.bsa")?)),
+        _ => None,
+    };
+    let n = file.header.shape.first().copied().unwrap_or(0);
+    let lobes = super::GeometryLobes::new(
+        std::sync::Arc::new(file),
+        heads,
+        gamma_layout(prof),
+        prof.geometry.lobe_clusters,
+        n,
+    )?;
     let reps = open("geometry/representatives.bsa")?;
     let reps: Vec<usize> = reps.u32s()?.iter().map(|&k| k as usize).collect();
     let x0 = open("geometry/x.bsa")?;
@@ -1383,15 +1513,12 @@ pub fn fit_lobe_weights(
             Prefiltered::from_table(&parse_material(&item.spec)?, &pcfg, data)
         })
         .collect::<Result<Vec<_>>>()?;
-    let n = lobes.header.shape.first().copied().unwrap_or(0);
     let bar = progress.bar(
         n as u64,
         "merge: geometry weights fitted to the light lobes",
     );
     let x = super::lobefit::fit(
         &lobes,
-        &gamma_layout(prof),
-        prof.geometry.lobe_clusters,
         tables,
         &reps,
         x0.f32s()?,

@@ -100,17 +100,32 @@ pub fn merge(dir: &Path, quiet: bool, keep_chunks: bool) -> Result<String> {
 /// representatives (`material/search-*.bsa`, [`super::build::material_search_selection`]): for
 /// libraries built before the merge wrote them. `material_search_energy` sets that key of the
 /// library's profile first (its `profile.toml` and the manifest's profile hash are rewritten:
-/// the library is then what the changed profile builds). Rewrites the manifest.
-pub fn refit(dir: &Path, material_search_energy: Option<f64>, quiet: bool) -> Result<String> {
+/// the library is then what the changed profile builds). `half_lobes` first stores `f32`
+/// light-lobe records in half precision ([`super::build::convert_lobes_to_half`]) and sets the
+/// profile's `geometry.lobe_precision = "half"` the same way. Rewrites the manifest.
+pub fn refit(
+    dir: &Path,
+    material_search_energy: Option<f64>,
+    half_lobes: bool,
+    quiet: bool,
+) -> Result<String> {
     let mut lib = Library::open(dir)?;
     let progress = Progress { quiet };
-    if let Some(e) = material_search_energy {
-        let mut prof = lib.profile.clone();
-        prof.compression.material_search_energy = Some(e);
-        // Parsed again, so the key is checked as a profile's would be (and named so).
-        lib.profile = LibraryProfile::parse(&prof.canonical(), "--material-search-energy")?;
-    }
     let mut m = lib.manifest.clone();
+    let mut prof = lib.profile.clone();
+    if let Some(e) = material_search_energy {
+        prof.compression.material_search_energy = Some(e);
+    }
+    if half_lobes
+        && super::build::convert_lobes_to_half(dir, &lib, &prof, &progress, &mut m.files)?
+    {
+        prof.geometry.lobe_precision = super::profile::LobePrecision::Half;
+    }
+    let changed = prof != lib.profile;
+    if changed {
+        // Parsed again, so the keys are checked as a profile's would be (and named so).
+        lib.profile = LibraryProfile::parse(&prof.canonical(), "library refit: the profile with its options")?;
+    }
     m.build.lobe_fit = super::build::fit_lobe_weights(
         dir,
         &lib.profile,
@@ -125,7 +140,7 @@ pub fn refit(dir: &Path, material_search_energy: Option<f64>, quiet: bool) -> Re
     }
     // The profile, then the manifest naming its hash (two renames: a refit killed between them
     // leaves a library that `Library::open` calls inconsistent).
-    if material_search_energy.is_some() {
+    if changed {
         crate::atomic_write::write_bytes(
             &dir.join("profile.toml"),
             lib.profile.canonical().as_bytes(),

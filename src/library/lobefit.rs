@@ -24,10 +24,9 @@ use crate::frame::{dir_from_rad, DirPair, Vec3};
 use crate::gamma::GammaLayout;
 use crate::lightlobes::{LightLobes, LightPairs};
 use crate::prefilter::Prefiltered;
-use crate::store::ArrayFile;
+use super::GeometryLobes;
 use faer::Mat;
 use rayon::prelude::*;
-use std::borrow::Cow;
 
 /// Uniform probe views per light, and views in the cap around its mirror direction.
 const UNIFORM_VIEWS: usize = 48;
@@ -108,26 +107,6 @@ fn tangent_frame(n: Vec3) -> (Vec3, Vec3) {
     (t, n.cross(t))
 }
 
-/// The light-lobe record of geometry `j` of `lobes` (`geometry/lobes.bsa`), read with a
-/// positioned read (a pass over every geometry through the map would keep the whole file
-/// resident).
-fn read_record<'a>(
-    lobes: &ArrayFile,
-    layout: &'a GammaLayout,
-    clusters: usize,
-    j: usize,
-) -> Result<LightLobes<'a>> {
-    let len = lobes.header.shape[1];
-    let mut rec = vec![0f32; len];
-    lobes.read_data(j * len * 4, bytemuck::cast_slice_mut(&mut rec))?;
-    LightLobes::from_record(
-        layout,
-        clusters,
-        Cow::Owned(rec),
-        &format!("{} row {j}", lobes.path.display()),
-    )
-}
-
 /// Refitted weights `[geometries][representatives]` (the layout of `x.bsa`) for the light-lobe
 /// records in `lobes` and the representatives `reps`, probed with the materials `tables`:
 /// per geometry `j`, `x = argmin |Φ_C x − Φ_j|² + μ |x − x0_j|²` with `Φ` the probe values
@@ -135,23 +114,21 @@ fn read_record<'a>(
 /// (`x.bsa`, the prior where the probes say little) and `μ = PRIOR ×` the mean diagonal of
 /// `Φ_Cᵀ Φ_C`. `progress(n)` is called as each block of `n` geometries finishes.
 pub fn fit(
-    lobes: &ArrayFile,
-    layout: &GammaLayout,
-    clusters: usize,
+    lobes: &GeometryLobes,
     tables: Vec<Prefiltered>,
     reps: &[usize],
     x0: &[f32],
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<Vec<f32>> {
-    let n = lobes.header.shape[0];
-    let probes = Probes::with_tables(layout, tables);
+    let n = lobes.len();
+    let probes = Probes::with_tables(&lobes.layout, tables);
     let (p, r) = (probes.len(), reps.len());
     if r == 0 || n == 0 || probes.is_empty() {
         return Ok(x0.to_vec());
     }
     if x0.len() != n * r {
         return Err(Error::new(
-            lobes.path.display().to_string(),
+            lobes.path().display().to_string(),
             format!(
                 "{} prior weights for {n} geometries × {r} representatives",
                 x0.len()
@@ -162,7 +139,7 @@ pub fn fit(
     // The representatives' probe values, and each probe material's scale.
     let cols: Vec<Vec<f64>> = reps
         .par_iter()
-        .map(|&k| Ok(probes.values(&read_record(lobes, layout, clusters, k)?)))
+        .map(|&k| Ok(probes.values(&lobes.read(k)?)))
         .collect::<Result<_>>()?;
     let scale: Vec<f64> = (0..probes.tables.len())
         .map(|m| {
@@ -207,7 +184,7 @@ pub fn fit(
         .map(|b| {
             let mut v = Mat::<f64>::zeros(p, b.len());
             for (jj, j) in b.clone().enumerate() {
-                let mut col = probes.values(&read_record(lobes, layout, clusters, j)?);
+                let mut col = probes.values(&lobes.read(j)?);
                 scaled(&mut col);
                 for (i, x) in col.iter().enumerate() {
                     v[(i, jj)] = *x;
@@ -224,7 +201,7 @@ pub fn fit(
                     let w = fit[(k, jj)] + prior[(k, 0)];
                     if !w.is_finite() {
                         return Err(Error::new(
-                            lobes.path.display().to_string(),
+                            lobes.path().display().to_string(),
                             format!("geometry {j}: a refitted weight is not finite"),
                         ));
                     }

@@ -14,7 +14,12 @@
 //! geometry/representatives.bsa  u32: CX column indices c(k)
 //! geometry/x.bsa                f32 [geometries, c]: CX weights X (Eq. 11)
 //! geometry/x-lobes.bsa          f32 [geometries, c]: the same refitted to the light lobes (lobefit)
-//! geometry/lobes.bsa            f32 [geometries, record]: light lobes (crate::lightlobes)
+//! geometry/lobes.bsa            f16 [geometries, moments]: light lobes (crate::lightlobes) in
+//!                               half precision (crate::lobecodec); with
+//!                               geometry.lobe_precision = "single" (and in libraries built
+//!                               before it), f32 [geometries, record], the records themselves
+//! geometry/lobe-heads.bsa       f32 [geometries, 5 × clusters]: the half-precision records'
+//!                               cluster headers
 //! material/...                  the same for materials, with prefiltered.bsa (f32 [materials,
 //!                               table]) instead of gamma.bsa, and colour.bsa / colour-shifts.bsa
 //! chunks/                       build work of shards (and of --keep-chunks), removed after the merge
@@ -35,7 +40,7 @@ pub mod progress;
 
 use crate::error::{Error, Result};
 use crate::gamma::GammaLayout;
-use crate::store::{ArrayFile, Expect};
+use crate::store::{ArrayFile, Dtype, Expect};
 use build::{merge, Shard};
 use items::{GeometryItem, MaterialItem};
 use manifest::{Manifest, ShardTimes, StageTimes};
@@ -206,36 +211,171 @@ pub fn ensure(profile: &str, cache: Option<&Path>, progress: &Progress) -> Resul
     Library::open(&dir)
 }
 
-/// The light lobes of every library geometry ([`crate::lightlobes`]), read from the mapped array.
+/// The light lobes of every library geometry ([`crate::lightlobes`]), read from the mapped
+/// arrays: `geometry/lobes.bsa` holds the `f32` records, or (`geometry.lobe_precision = "half"`,
+/// [`crate::lobecodec`]) their moments in `f16` beside their headers in
+/// `geometry/lobe-heads.bsa`.
 pub struct GeometryLobes {
     file: Arc<ArrayFile>,
+    heads: Option<Arc<ArrayFile>>,
     pub layout: GammaLayout,
     clusters: usize,
+    /// Elements per row of `file`.
     len: usize,
 }
 
 impl GeometryLobes {
+    /// The records of `geometries` geometries in `file` (and `heads`, for the half-precision
+    /// form), their types and shapes checked against `layout` and `clusters`.
+    pub fn new(
+        file: Arc<ArrayFile>,
+        heads: Option<Arc<ArrayFile>>,
+        layout: GammaLayout,
+        clusters: usize,
+        geometries: usize,
+    ) -> Result<Self> {
+        let record = crate::lightlobes::record_len(&layout, clusters);
+        let shape = |f: &ArrayFile, want: [usize; 2], what: &str| {
+            if f.header.shape == want {
+                Ok(())
+            } else {
+                Err(Error::new(
+                    f.path.display().to_string(),
+                    format!(
+                        "shape {:?} does not match the profile's {want:?} (geometries × {what})",
+                        f.header.shape
+                    ),
+                ))
+            }
+        };
+        let len = match (file.header.dtype, &heads) {
+            (Dtype::F32, _) => {
+                shape(&file, [geometries, record], "light-lobe record")?;
+                record
+            }
+            (Dtype::F16, Some(h)) => {
+                let len = crate::lobecodec::half_len(record, clusters);
+                shape(&file, [geometries, len], "half-precision light-lobe moments")?;
+                shape(h, [geometries, clusters * crate::lightlobes::HEAD], "cluster headers")?;
+                if h.header.dtype != Dtype::F32 {
+                    return Err(Error::new(
+                        h.path.display().to_string(),
+                        format!("element type {:?}, expected F32", h.header.dtype),
+                    ));
+                }
+                len
+            }
+            (d, _) => {
+                return Err(Error::new(
+                    file.path.display().to_string(),
+                    format!(
+                        "element type {d:?}: expected F32 records, or F16 moments with \
+                         geometry/lobe-heads.bsa beside them"
+                    ),
+                ))
+            }
+        };
+        Ok(GeometryLobes {
+            file,
+            heads,
+            layout,
+            clusters,
+            len,
+        })
+    }
+
+    /// Whether the records are the half-precision form.
+    pub fn is_half(&self) -> bool {
+        self.heads.is_some()
+    }
+
+    /// How many geometries.
+    pub fn len(&self) -> usize {
+        self.file.header.shape.first().copied().unwrap_or(0)
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The records' file (for messages).
+    pub fn path(&self) -> &Path {
+        &self.file.path
+    }
+
+    fn what(&self, j: usize) -> String {
+        format!("{} row {j}", self.file.path.display())
+    }
+
     /// Geometry `j`'s lobes (borrowed from the mapping; nothing is copied).
     pub fn get(&self, j: usize) -> Result<crate::lightlobes::LightLobes<'_>> {
-        let d = self.file.f32s()?;
-        let what = || format!("{} row {j}", self.file.path.display());
-        let rec = d
-            .get(j * self.len..(j + 1) * self.len)
-            .ok_or_else(|| Error::new(what(), "no such geometry"))?;
-        crate::lightlobes::LightLobes::from_record(
-            &self.layout,
-            self.clusters,
-            std::borrow::Cow::Borrowed(rec),
-            &what(),
-        )
+        let rows = j * self.len..(j + 1) * self.len;
+        let missing = || Error::new(self.what(j), "no such geometry");
+        match &self.heads {
+            None => {
+                let rec = self.file.f32s()?.get(rows).ok_or_else(missing)?;
+                crate::lightlobes::LightLobes::from_record(
+                    &self.layout,
+                    self.clusters,
+                    std::borrow::Cow::Borrowed(rec),
+                    &self.what(j),
+                )
+            }
+            Some(h) => {
+                let k = self.clusters * crate::lightlobes::HEAD;
+                let head = h.f32s()?.get(j * k..(j + 1) * k).ok_or_else(missing)?;
+                let body = self.file.f16s()?.get(rows).ok_or_else(missing)?;
+                crate::lightlobes::LightLobes::from_half(
+                    &self.layout,
+                    self.clusters,
+                    head,
+                    std::borrow::Cow::Borrowed(body),
+                    &self.what(j),
+                )
+            }
+        }
+    }
+
+    /// Geometry `j`'s lobes copied out with positioned reads (a pass over every geometry
+    /// through the map would keep the whole file resident).
+    pub fn read(&self, j: usize) -> Result<crate::lightlobes::LightLobes<'_>> {
+        let size = self.file.header.dtype.size();
+        match &self.heads {
+            None => {
+                let mut rec = vec![0f32; self.len];
+                self.file
+                    .read_data(j * self.len * size, bytemuck::cast_slice_mut(&mut rec))?;
+                crate::lightlobes::LightLobes::from_record(
+                    &self.layout,
+                    self.clusters,
+                    std::borrow::Cow::Owned(rec),
+                    &self.what(j),
+                )
+            }
+            Some(h) => {
+                let k = self.clusters * crate::lightlobes::HEAD;
+                let mut head = vec![0f32; k];
+                h.read_data(j * k * 4, bytemuck::cast_slice_mut(&mut head))?;
+                let mut body = vec![half::f16::ZERO; self.len];
+                self.file
+                    .read_data(j * self.len * size, bytemuck::cast_slice_mut(&mut body))?;
+                crate::lightlobes::LightLobes::from_half(
+                    &self.layout,
+                    self.clusters,
+                    &head,
+                    std::borrow::Cow::Owned(body),
+                    &self.what(j),
+                )
+            }
+        }
     }
 
     /// Start reading the records of geometries `js` into memory without waiting for them
     /// ([`ArrayFile::will_need`]), before a pass that reads them all, in the order two
     /// workers splitting `js` in halves reach the records (from the start and from the middle,
-    /// alternately).
+    /// alternately). (The headers, 20 bytes per cluster, are left to the reads themselves.)
     pub fn will_need(&self, js: &[usize]) {
-        let bytes = self.len * 4;
+        let bytes = self.len * self.file.header.dtype.size();
         let half = js.len().div_ceil(2);
         let ranges = (0..half)
             .flat_map(|i| [js.get(i), js.get(half + i)])
@@ -418,28 +558,22 @@ impl Library {
         self.manifest.files.iter().any(|f| f.path == rel)
     }
 
-    /// Every geometry's light lobes (`geometry/lobes.bsa`, mapped on first use).
+    /// Every geometry's light lobes (`geometry/lobes.bsa`, and `geometry/lobe-heads.bsa` beside
+    /// half-precision ones, mapped on first use).
     pub fn geometry_lobes(&self) -> Result<GeometryLobes> {
         let file = self.array("geometry/lobes.bsa")?;
-        let layout = self.gamma_layout();
-        let clusters = self.profile.geometry.lobe_clusters;
-        let len = crate::lightlobes::record_len(&layout, clusters);
-        let want = [self.manifest.geometries, len];
-        if file.header.shape != want {
-            return Err(Error::new(
-                file.path.display().to_string(),
-                format!(
-                    "shape {:?} does not match the profile's {:?} (geometries × light-lobe record)",
-                    file.header.shape, want
-                ),
-            ));
-        }
-        Ok(GeometryLobes {
+        let heads = if file.header.dtype == Dtype::F16 {
+            Some(self.array("geometry/lobe-heads.bsa")?)
+        } else {
+            None
+        };
+        GeometryLobes::new(
             file,
-            layout,
-            clusters,
-            len,
-        })
+            heads,
+            self.gamma_layout(),
+            self.profile.geometry.lobe_clusters,
+            self.manifest.geometries,
+        )
     }
 
     /// Check every file against the manifest (reads everything).

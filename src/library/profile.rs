@@ -44,12 +44,26 @@ pub struct GeometrySection {
     /// the solvers re-rank with.
     #[serde(default = "default_lobe_clusters")]
     pub lobe_clusters: usize,
+    /// How the light-lobe records are stored: `half` (the default: moments about each
+    /// cluster's centre in `f16`, [`crate::lobecodec`], half the bytes, which a search reading
+    /// records from the disk waits for) or `single` (the `f32` records).
+    #[serde(default)]
+    pub lobe_precision: LobePrecision,
     #[serde(default)]
     pub family: Vec<GeometryFamily>,
 }
 
 fn default_lobe_clusters() -> usize {
     16
+}
+
+/// The stored precision of the light-lobe records (`geometry.lobe_precision`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LobePrecision {
+    #[default]
+    Half,
+    Single,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -353,8 +367,8 @@ impl LibraryProfile {
         pos("geometry.normal_grid", g.normal_grid, 3, 64)?;
         pos("geometry.rays", g.rays, 1, 1 << 20)?;
         pos("geometry.lobe_clusters", g.lobe_clusters, 1, 64)?;
-        // One geometry's binned column (f16) and light-lobe record (f32), as GammaLayout and
-        // lightlobes::record_len size them for the library's 7 lights.
+        // One geometry's binned column (f16) and light-lobe record (in floats, whatever their
+        // precision), as GammaLayout and lightlobes::record_len size them for the 7 lights.
         let views = g.view_theta * g.view_phi;
         let column = 7 * views * g.normal_grid * g.normal_grid;
         let record = g.lobe_clusters * (5 + views * 3 + 7 * views * 9);
