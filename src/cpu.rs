@@ -1,12 +1,13 @@
 //! The processor features this build was compiled for, checked at start-up: on x86-64,
-//! `.cargo/config.toml` enables AVX2, and a processor without it would otherwise stop at the
+//! `.cargo/config.toml` enables AVX2 and F16C (half-precision conversions, which every AVX2
+//! processor has), and a processor without it would otherwise stop at the
 //! first such instruction with an illegal-instruction signal instead of a message.
 
 /// `Err` saying what to do when the processor lacks an instruction set this build uses.
 pub fn check() -> Result<(), String> {
     #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
     if !has_avx2() {
-        return Err("this build of biscale uses AVX2 instructions (enabled in \
+        return Err("this build of biscale uses AVX2 and F16C instructions (enabled in \
                     .cargo/config.toml) and this processor does not have them; rebuild for \
                     any x86-64 processor with RUSTFLAGS=\"-C target-cpu=x86-64\" cargo build \
                     --release"
@@ -15,7 +16,7 @@ pub fn check() -> Result<(), String> {
     Ok(())
 }
 
-/// Whether the processor has AVX2 and the operating system saves the 256-bit registers,
+/// Whether the processor has AVX2 and F16C and the operating system saves the 256-bit registers,
 /// asked of the processor itself (`is_x86_feature_detected!` answers `true` without asking
 /// when the build enables the feature).
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
@@ -26,7 +27,8 @@ fn has_avx2() -> bool {
     let max = __cpuid(0).eax;
     let l1 = __cpuid(1);
     let (osxsave, avx) = (l1.ecx & (1 << 27) != 0, l1.ecx & (1 << 28) != 0);
-    if max < 7 || !osxsave || !avx {
+    let f16c = l1.ecx & (1 << 29) != 0;
+    if max < 7 || !osxsave || !avx || !f16c {
         return false;
     }
     let xcr0: u32;

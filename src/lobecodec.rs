@@ -92,28 +92,23 @@ impl Frame {
         let (m1c, m2c) = (d1 + e1c, d2 + e2c);
         let (t1, t2, c) = (self.t1, self.t2, self.c);
         let g1 = t1 * d1 + t2 * d2 + c * (a + dc);
-        // M' in the frame; its trace is A (unit normals), which gives its last entry.
-        let m = [
-            [m11, m12, m1c],
-            [m12, m22, m2c],
-            [m1c, m2c, a - m11 - m22],
-        ];
-        // G2 = R M' Rᵀ with R's columns t1, t2, c.
-        let r = [[t1.x, t2.x, c.x], [t1.y, t2.y, c.y], [t1.z, t2.z, c.z]];
-        let rm: [[f64; 3]; 3] = std::array::from_fn(|i| {
-            std::array::from_fn(|k| (0..3).map(|j| r[i][j] * m[j][k]).sum())
-        });
-        let q = |i: usize, j: usize| -> f64 { (0..3).map(|k| rm[i][k] * r[j][k]).sum() };
+        // G2 = R M' Rᵀ (R's columns t1, t2, c; M' symmetric, of trace A since the normals are
+        // unit vectors, which gives its last entry): with u_k = M' row k applied to R's
+        // columns, G2 = t1 u1ᵀ + t2 u2ᵀ + c ucᵀ.
+        let mcc = a - m11 - m22;
+        let u1 = t1 * m11 + t2 * m12 + c * m1c;
+        let u2 = t1 * m12 + t2 * m22 + c * m2c;
+        let uc = t1 * m1c + t2 * m2c + c * mcc;
         [
             g1.x,
             g1.y,
             g1.z,
-            q(0, 0),
-            q(1, 1),
-            q(2, 2),
-            q(0, 1),
-            q(0, 2),
-            q(1, 2),
+            t1.x * u1.x + t2.x * u2.x + c.x * uc.x,
+            t1.y * u1.y + t2.y * u2.y + c.y * uc.y,
+            t1.z * u1.z + t2.z * u2.z + c.z * uc.z,
+            t1.x * u1.y + t2.x * u2.y + c.x * uc.y,
+            t1.x * u1.z + t2.x * u2.z + c.x * uc.z,
+            t1.y * u1.z + t2.y * u2.z + c.y * uc.z,
         ]
     }
 }
@@ -126,11 +121,15 @@ pub fn scale(l: &[f64; STRIDE]) -> [f16; STRIDE] {
     std::array::from_fn(|i| f16::from_f64(if i == 0 { a.max(0.0) } else { l[i] * s }))
 }
 
-/// A stored lit entry back to [`Frame::lit_local`]'s numbers (multiplied by its `A`).
+/// A stored lit entry (`f16`, or already converted to `f32`) back to [`Frame::lit_local`]'s
+/// numbers (multiplied by its `A`).
 #[inline]
-pub fn unscale(e: &[f16]) -> [f64; STRIDE] {
-    let a = e[0].to_f64();
-    std::array::from_fn(|i| if i == 0 { a } else { e[i].to_f64() * a })
+pub fn unscale<T: Copy>(e: &[T]) -> [f64; STRIDE]
+where
+    f64: From<T>,
+{
+    let a = f64::from(e[0]);
+    std::array::from_fn(|i| if i == 0 { a } else { f64::from(e[i]) * a })
 }
 
 /// Length in `f16` of the encoded part of a record (the `f32` record without its header).

@@ -46,8 +46,11 @@ pub struct GeometrySection {
     pub lobe_clusters: usize,
     /// How the light-lobe records are stored: `half` (the default: moments about each
     /// cluster's centre in `f16`, [`crate::lobecodec`], half the bytes, which a search reading
-    /// records from the disk waits for) or `single` (the `f32` records).
-    #[serde(default)]
+    /// records from the disk waits for) or `single` (the `f32` records). Left out of the
+    /// canonical profile when `half`, so profiles and libraries from before the key keep their
+    /// hashes (such libraries hold `f32` records, which are read as they are; `biscale library
+    /// refit --half-lobes` converts them).
+    #[serde(default, skip_serializing_if = "LobePrecision::is_half")]
     pub lobe_precision: LobePrecision,
     #[serde(default)]
     pub family: Vec<GeometryFamily>,
@@ -64,6 +67,12 @@ pub enum LobePrecision {
     #[default]
     Half,
     Single,
+}
+
+impl LobePrecision {
+    pub fn is_half(&self) -> bool {
+        *self == LobePrecision::Half
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
