@@ -7,11 +7,13 @@
 pub fn check() -> Result<(), String> {
     #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
     if !has_avx2() {
-        return Err("this build of biscale uses AVX2 and F16C instructions (enabled in \
+        return Err(
+            "this build of biscale uses AVX2 and F16C instructions (enabled in \
                     .cargo/config.toml) and this processor does not have them; rebuild for \
                     any x86-64 processor with RUSTFLAGS=\"-C target-cpu=x86-64\" cargo build \
                     --release"
-            .into());
+                .into(),
+        );
     }
     Ok(())
 }

@@ -31,8 +31,8 @@ use crate::frame::DirPair;
 use crate::frame::Vec3;
 use crate::gamma::GammaLayout;
 use crate::heightfield::Heightfield;
-use crate::prefilter::Prefiltered;
 use crate::lobecodec::{unscale, Frame};
+use crate::prefilter::Prefiltered;
 use crate::vmf::Vmf;
 use half::f16;
 use std::borrow::Cow;
@@ -354,15 +354,41 @@ impl LightLobes<'_> {
         }
     }
 
-    /// The clusters as [`assemble_lobes`] reads them.
-    fn cluster_view(&self) -> Clusters<'_> {
-        Clusters {
+    /// [`assemble_lobes`] at node `n` (light `n.light` exactly, the view nodes' weights):
+    /// `entry(b, c)` is cluster `c`'s moments at view node `b` in the macro frame (read for
+    /// planar clusters), `blended(c)` its moments interpolated over the view nodes.
+    #[allow(clippy::too_many_arguments)]
+    fn assemble<'t>(
+        &self,
+        n: &Node,
+        wi: Vec3,
+        wo: Vec3,
+        entry: &impl Fn(usize, usize) -> &'t [f32],
+        blended: impl Fn(usize) -> [f64; STRIDE],
+        diag: f64,
+        out: &mut Vec<(f64, Vmf)>,
+    ) {
+        let cl = Clusters {
             centres: &self.centres,
             planar: &self.planar,
             area: &self.area,
             shapes: &[],
             split: false,
-        }
+        };
+        assemble_lobes(
+            &cl,
+            wi,
+            wo,
+            &[(n.light, 1.0)],
+            |_| wi,
+            &n.views,
+            |b| self.layout.views.direction(b),
+            &|_, b, c| entry(b, c),
+            blended,
+            None,
+            diag,
+            out,
+        );
     }
 
     /// [`Self::lobes_at`] from an `f32` record.
@@ -382,13 +408,13 @@ impl LightLobes<'_> {
         // Every cluster's lit moments interpolated over the view nodes, in one pass over each
         // node's contiguous block (the order of additions is `bvndf::blend`'s).
         // (Flat, so that the loop runs over whole vector registers.)
-        let n = k * STRIDE;
+        let nl = k * STRIDE;
         let mut stack = [0.0f64; 32 * STRIDE];
         let mut heap = Vec::new();
-        let acc: &mut [f64] = if n <= stack.len() {
-            &mut stack[..n]
+        let acc: &mut [f64] = if nl <= stack.len() {
+            &mut stack[..nl]
         } else {
-            heap.resize(n, 0.0);
+            heap.resize(nl, 0.0);
             &mut heap
         };
         for &(b, vb) in wb {
@@ -396,21 +422,17 @@ impl LightLobes<'_> {
                 continue;
             }
             let o = self.lit_at(l, b);
-            for (a, &e) in acc.iter_mut().zip(&r[o..o + n]) {
+            for (a, &e) in acc.iter_mut().zip(&r[o..o + nl]) {
                 *a += vb * e as f64;
             }
         }
         let acc = &*acc;
-        assemble_lobes(
-            &self.cluster_view(),
+        self.assemble(
+            n,
             wi,
             wo,
-            &[(l, 1.0)],
-            |_| wi,
-            wb,
-            |b| self.layout.views.direction(b),
-            &|a, b, c| {
-                let o = self.lit_at(a, b) + c * STRIDE;
+            &|b, c| {
+                let o = self.lit_at(l, b) + c * STRIDE;
                 &r[o..o + STRIDE]
             },
             |c| {
@@ -418,7 +440,6 @@ impl LightLobes<'_> {
                 a.copy_from_slice(&acc[c * STRIDE..(c + 1) * STRIDE]);
                 a
             },
-            None,
             diag,
             out,
         );
@@ -443,7 +464,11 @@ impl LightLobes<'_> {
         let (ns, nl) = (k * 3, k * STRIDE);
         // Buffers on the stack for up to 16 clusters (the profiles' default), else on the heap.
         const STACK: usize = 16;
-        let (mut c0, mut s0, mut a0) = ([0f32; STACK * STRIDE], [0f64; STACK * 3], [0f64; STACK * STRIDE]);
+        let (mut c0, mut s0, mut a0) = (
+            [0f32; STACK * STRIDE],
+            [0f64; STACK * 3],
+            [0f64; STACK * STRIDE],
+        );
         let (mut c1, mut s1, mut a1) = (Vec::new(), Vec::new(), Vec::new());
         let (conv, seen, acc): (&mut [f32], &mut [f64], &mut [f64]) = if k <= STACK {
             (&mut c0[..nl], &mut s0[..ns], &mut a0[..nl])
@@ -497,15 +522,11 @@ impl LightLobes<'_> {
             .map(|(f, g)| wo.dot(f.seen_global(&[g[0], g[1], g[2]])))
             .sum();
         let (acc, ent) = (&*acc, &ent);
-        assemble_lobes(
-            &self.cluster_view(),
+        self.assemble(
+            n,
             wi,
             wo,
-            &[(l, 1.0)],
-            |_| wi,
-            wb,
-            |b| self.layout.views.direction(b),
-            &|_, b, c| {
+            &|b, c| {
                 let i = wb.iter().position(|v| v.0 == b).unwrap_or(0);
                 &ent[(i * k + c) * STRIDE..][..STRIDE]
             },
@@ -519,7 +540,6 @@ impl LightLobes<'_> {
                     [0.0; STRIDE]
                 }
             },
-            None,
             diag,
             out,
         );

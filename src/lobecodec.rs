@@ -118,7 +118,13 @@ impl Frame {
 pub fn scale(l: &[f64; STRIDE]) -> [f16; STRIDE] {
     let a = l[0];
     let s = if a > 0.0 { 1.0 / a } else { 0.0 };
-    std::array::from_fn(|i| f16::from_f64(if i == 0 { a.max(0.0) } else { l[i] * s }))
+    std::array::from_fn(|i| to_half(if i == 0 { a.max(0.0) } else { l[i] * s }))
+}
+
+/// `f16` of `x` through `f32`, as F16C converts (a build with or without F16C then writes the
+/// same bytes; straight from `f64` the software path would round once, F16C twice).
+fn to_half(x: f64) -> f16 {
+    f16::from_f32(x as f32)
 }
 
 /// A stored lit entry (`f16`, or already converted to `f32`) back to [`Frame::lit_local`]'s
@@ -147,7 +153,7 @@ pub fn encode(record: &[f32], clusters: usize, views: usize) -> Option<(Vec<f32>
     let (seen, lit) = body.split_at(views * clusters * 3);
     let mut out = Vec::with_capacity(body.len());
     for (k, g) in seen.chunks(3).enumerate() {
-        out.extend(frames[k % clusters].seen_local(g).map(f16::from_f64));
+        out.extend(frames[k % clusters].seen_local(g).map(to_half));
     }
     for (k, e) in lit.chunks(STRIDE).enumerate() {
         out.extend(scale(&frames[k % clusters].lit_local(e)));
@@ -191,11 +197,11 @@ mod tests {
             let n = (c + t1 * (s * a) + t2 * (s * b)).normalized();
             let m = moments(n);
             let wk = w * (1.0 + k as f64) / 4.0;
-            for i in 0..3 {
-                seen[i] += wk * n.to_array()[i];
+            for (x, y) in seen.iter_mut().zip(n.to_array()) {
+                *x += wk * y;
             }
-            for i in 0..STRIDE {
-                lit[i] += wk * m[i];
+            for (x, y) in lit.iter_mut().zip(m) {
+                *x += wk * y;
             }
         }
         (seen.map(|x| x as f32), lit.map(|x| x as f32))
@@ -237,7 +243,10 @@ mod tests {
             let d0 = 1.0 - resultant(&exact, wo);
             let d1 = 1.0 - resultant(&f.lit_global(&local), wo);
             let tol = 4e-3 * d0 + 1e-9;
-            assert!((d0 - d1).abs() <= tol, "{deg}°: 1 - r {d0:e} against {d1:e}");
+            assert!(
+                (d0 - d1).abs() <= tol,
+                "{deg}°: 1 - r {d0:e} against {d1:e}"
+            );
         }
     }
 }

@@ -560,8 +560,8 @@ pub fn lobe_bytes(
         LobePrecision::Single => Ok(vec![f32_bytes(lobes).to_vec()]),
         LobePrecision::Half => {
             let k = prof.geometry.lobe_clusters;
-            let (head, body) = crate::lobecodec::encode(lobes, k, layout.views.len())
-                .ok_or_else(|| {
+            let (head, body) =
+                crate::lobecodec::encode(lobes, k, layout.views.len()).ok_or_else(|| {
                     Error::new(
                         format!("geometry item {} ({})", it.index, it.spec),
                         "a light-lobe moment is beyond half precision's range (an area over \
@@ -1429,7 +1429,12 @@ pub fn convert_lobes_to_half(
         heads.dtype,
         &[n, heads.len],
     )?;
-    let mut wb = ArrayWriter::create(&dir.join(body.joined), body.name, body.dtype, &[n, body.len])?;
+    let mut wb = ArrayWriter::create(
+        &dir.join(body.joined),
+        body.name,
+        body.dtype,
+        &[n, body.len],
+    )?;
     let bar = progress.bar(n as u64, "refit: light lobes to half precision");
     let (k, views) = (prof.geometry.lobe_clusters, old.layout.views.len());
     for start in (0..n).step_by(256) {
@@ -1517,13 +1522,7 @@ pub fn fit_lobe_weights(
         n as u64,
         "merge: geometry weights fitted to the light lobes",
     );
-    let x = super::lobefit::fit(
-        &lobes,
-        tables,
-        &reps,
-        x0.f32s()?,
-        &|n| bar.inc(n as u64),
-    )?;
+    let x = super::lobefit::fit(&lobes, tables, &reps, x0.f32s()?, &|n| bar.inc(n as u64))?;
     bar.finish();
     files.retain(|f| f.path != "geometry/x-lobes.bsa");
     save_f32(

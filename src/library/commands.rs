@@ -116,15 +116,17 @@ pub fn refit(
     if let Some(e) = material_search_energy {
         prof.compression.material_search_energy = Some(e);
     }
-    if half_lobes
-        && super::build::convert_lobes_to_half(dir, &lib, &prof, &progress, &mut m.files)?
+    if half_lobes && super::build::convert_lobes_to_half(dir, &lib, &prof, &progress, &mut m.files)?
     {
         prof.geometry.lobe_precision = super::profile::LobePrecision::Half;
     }
     let changed = prof != lib.profile;
     if changed {
         // Parsed again, so the keys are checked as a profile's would be (and named so).
-        lib.profile = LibraryProfile::parse(&prof.canonical(), "library refit: the profile with its options")?;
+        lib.profile = LibraryProfile::parse(
+            &prof.canonical(),
+            "library refit: the profile with its options",
+        )?;
     }
     m.build.lobe_fit = super::build::fit_lobe_weights(
         dir,

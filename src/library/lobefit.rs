@@ -19,12 +19,12 @@
 //! alike. Twice as many views gave the same rates on `paper4` and one case in 50 more on
 //! `paper16`, at twice the cost.
 
+use super::GeometryLobes;
 use crate::error::{Error, Result};
 use crate::frame::{dir_from_rad, DirPair, Vec3};
 use crate::gamma::GammaLayout;
 use crate::lightlobes::{LightLobes, LightPairs};
 use crate::prefilter::Prefiltered;
-use super::GeometryLobes;
 use faer::Mat;
 use rayon::prelude::*;
 

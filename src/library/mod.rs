@@ -255,8 +255,16 @@ impl GeometryLobes {
             }
             (Dtype::F16, Some(h)) => {
                 let len = crate::lobecodec::half_len(record, clusters);
-                shape(&file, [geometries, len], "half-precision light-lobe moments")?;
-                shape(h, [geometries, clusters * crate::lightlobes::HEAD], "cluster headers")?;
+                shape(
+                    &file,
+                    [geometries, len],
+                    "half-precision light-lobe moments",
+                )?;
+                shape(
+                    h,
+                    [geometries, clusters * crate::lightlobes::HEAD],
+                    "cluster headers",
+                )?;
                 if h.header.dtype != Dtype::F32 {
                     return Err(Error::new(
                         h.path.display().to_string(),
