@@ -619,7 +619,7 @@ pub(crate) fn blend<'t>(
 /// * a planar cluster takes its analytic projected area `A_k (n·wo)+` times its jointly visible
 ///   fraction, interpolated only over the nodes it faces.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn assemble_lobes<'t>(
+pub(crate) fn assemble_lobes<'t, M: ClusterMoments>(
     cl: &Clusters,
     wi: Vec3,
     wo: Vec3,
@@ -628,7 +628,7 @@ pub(crate) fn assemble_lobes<'t>(
     wb: &[(usize, f64)],
     b_dir: impl Fn(usize) -> Vec3,
     entry: &impl Fn(usize, usize, usize) -> &'t [f32],
-    blended: impl Fn(usize) -> [f64; STRIDE],
+    blended: impl Fn(usize) -> M,
     correction: Option<&Correction>,
     diag: f64,
     out: &mut Vec<(f64, Vmf)>,
@@ -674,46 +674,88 @@ pub(crate) fn assemble_lobes<'t>(
                 continue;
             }
         }
-        let a = if cl.planar[c] {
-            blend(wa, wb, |na, b| entry(na, b, c))
+        if cl.planar[c] {
+            let a = blend(wa, wb, |na, b| entry(na, b, c));
+            push_cluster(cl, c, wo, &a, correction, diag, out);
         } else {
-            blended(c)
-        };
-        let tabulated = wo.x * a[0] + wo.y * a[1] + wo.z * a[2];
-        if !(tabulated > 0.0) {
-            continue;
+            push_cluster(cl, c, wo, &blended(c), correction, diag, out);
         }
-        // The lobe's shape comes from the tabulated moments; its share is rescaled and its
-        // mean normal turned by the fine seen table.
-        let mass = correction.map_or(tabulated, |k| k.area(c, tabulated));
-        if !(mass > 0.0) {
-            continue;
-        }
-        // (n·wo)-weighted normal moment G2 wo.
-        let m = second_times(&a[3..], wo);
-        let m = match correction {
-            Some(k) if !cl.planar[c] => k.mean(c, m),
-            _ => m,
-        };
-        let len = m.norm();
-        if !(len > 0.0) {
-            continue;
-        }
-        if let Some(shape) = cl.shapes.get(c).filter(|s| cl.split && s.parts.len() > 1) {
-            if shape.push(wo, m, &a, mass / diag, out) {
-                continue;
-            }
-        }
-        let lobe = if cl.planar[c] {
-            Vmf::new(crate::vmf::KAPPA_MAX, cl.centres[c])
-        } else {
-            Vmf::new(
-                kappa_from_resultant((len / tabulated).min(1.0)),
-                m * (1.0 / len),
-            )
-        };
-        out.push((mass / diag, lobe));
     }
+}
+
+/// A cluster's moments `G1` and `G2` as [`assemble_lobes`] reads them: the 9 numbers in the
+/// macro frame (`[f64; STRIDE]`), or another form that gives the same two products
+/// ([`crate::lobecodec::Local`]).
+pub(crate) trait ClusterMoments {
+    /// `wo·G1`, the cluster's projected area.
+    fn projected(&self, wo: Vec3) -> f64;
+    /// `G2 wo`, the `(n·wo)`-weighted normal moment.
+    fn second(&self, wo: Vec3) -> Vec3;
+    /// `(G1, G2 as xx, yy, zz, xy, xz, yz)` in the macro frame.
+    fn global(&self) -> [f64; STRIDE];
+}
+
+impl ClusterMoments for [f64; STRIDE] {
+    #[inline]
+    fn projected(&self, wo: Vec3) -> f64 {
+        wo.x * self[0] + wo.y * self[1] + wo.z * self[2]
+    }
+    #[inline]
+    fn second(&self, wo: Vec3) -> Vec3 {
+        second_times(&self[3..], wo)
+    }
+    #[inline]
+    fn global(&self) -> [f64; STRIDE] {
+        *self
+    }
+}
+
+/// The lobe (or sub-lobes) of cluster `c` from its moments `a`, appended to `out`
+/// ([`assemble_lobes`]).
+#[inline]
+fn push_cluster(
+    cl: &Clusters,
+    c: usize,
+    wo: Vec3,
+    a: &impl ClusterMoments,
+    correction: Option<&Correction>,
+    diag: f64,
+    out: &mut Vec<(f64, Vmf)>,
+) {
+    let tabulated = a.projected(wo);
+    if !(tabulated > 0.0) {
+        return;
+    }
+    // The lobe's shape comes from the tabulated moments; its share is rescaled and its
+    // mean normal turned by the fine seen table.
+    let mass = correction.map_or(tabulated, |k| k.area(c, tabulated));
+    if !(mass > 0.0) {
+        return;
+    }
+    // (n·wo)-weighted normal moment G2 wo.
+    let m = a.second(wo);
+    let m = match correction {
+        Some(k) if !cl.planar[c] => k.mean(c, m),
+        _ => m,
+    };
+    let len = m.norm();
+    if !(len > 0.0) {
+        return;
+    }
+    if let Some(shape) = cl.shapes.get(c).filter(|s| cl.split && s.parts.len() > 1) {
+        if shape.push(wo, m, &a.global(), mass / diag, out) {
+            return;
+        }
+    }
+    let lobe = if cl.planar[c] {
+        Vmf::new(crate::vmf::KAPPA_MAX, cl.centres[c])
+    } else {
+        Vmf::new(
+            kappa_from_resultant((len / tabulated).min(1.0)),
+            m * (1.0 / len),
+        )
+    };
+    out.push((mass / diag, lobe));
 }
 
 /// `Q w` for the symmetric matrix `Q` stored as `(xx, yy, zz, xy, xz, yz)`.

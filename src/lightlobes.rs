@@ -31,7 +31,7 @@ use crate::frame::DirPair;
 use crate::frame::Vec3;
 use crate::gamma::GammaLayout;
 use crate::heightfield::Heightfield;
-use crate::lobecodec::{unscale, Frame};
+use crate::lobecodec::{Frame, Local};
 use crate::prefilter::Prefiltered;
 use crate::vmf::Vmf;
 use half::f16;
@@ -358,13 +358,13 @@ impl LightLobes<'_> {
     /// `entry(b, c)` is cluster `c`'s moments at view node `b` in the macro frame (read for
     /// planar clusters), `blended(c)` its moments interpolated over the view nodes.
     #[allow(clippy::too_many_arguments)]
-    fn assemble<'t>(
+    fn assemble<'t, M: crate::bvndf::ClusterMoments>(
         &self,
         n: &Node,
         wi: Vec3,
         wo: Vec3,
         entry: &impl Fn(usize, usize) -> &'t [f32],
-        blended: impl Fn(usize) -> [f64; STRIDE],
+        blended: impl Fn(usize) -> M,
         diag: f64,
         out: &mut Vec<(f64, Vmf)>,
     ) {
@@ -478,7 +478,8 @@ impl LightLobes<'_> {
             a1.resize(nl, 0.0);
             (&mut c1, &mut s1, &mut a1)
         };
-        // A planar cluster is read node by node: its entries in the macro frame.
+        // A planar cluster is read node by node: its entries in the macro frame (from its lit
+        // area alone: its normals are its centre's).
         let planar = self.planar.iter().any(|&p| p);
         let mut ent = vec![0f32; if planar { wb.len() * nl } else { 0 }];
         for (i, &(b, vb)) in wb.iter().enumerate() {
@@ -489,8 +490,7 @@ impl LightLobes<'_> {
             body[o..o + nl].convert_to_f32_slice(conv);
             if planar {
                 for c in (0..k).filter(|&c| self.planar[c]) {
-                    let e = &conv[c * STRIDE..(c + 1) * STRIDE];
-                    let g = frames[c].lit_global(&unscale(e));
+                    let g = frames[c].planar_global(conv[c * STRIDE] as f64);
                     for (x, y) in ent[(i * k + c) * STRIDE..][..STRIDE].iter_mut().zip(g) {
                         *x = y as f32;
                     }
@@ -531,13 +531,11 @@ impl LightLobes<'_> {
                 &ent[(i * k + c) * STRIDE..][..STRIDE]
             },
             |c| {
-                let mut a = [0.0; STRIDE];
-                a.copy_from_slice(&acc[c * STRIDE..(c + 1) * STRIDE]);
-                // (A cluster with no lit area has no moments.)
-                if a[0] > 0.0 {
-                    frames[c].lit_global(&a)
-                } else {
-                    [0.0; STRIDE]
+                let mut l = [0.0; STRIDE];
+                l.copy_from_slice(&acc[c * STRIDE..(c + 1) * STRIDE]);
+                Local {
+                    frame: &frames[c],
+                    l,
                 }
             },
             diag,

@@ -85,6 +85,25 @@ impl Frame {
         ]
     }
 
+    /// The lit entry in the macro frame of a planar cluster (every normal equal to `c`, so
+    /// `D` and `M` vanish) whose lit area is `a`: `(a c, a c cᵀ)`.
+    #[inline]
+    pub fn planar_global(&self, a: f64) -> [f64; STRIDE] {
+        let c = self.c;
+        let ac = c * a;
+        [
+            ac.x,
+            ac.y,
+            ac.z,
+            ac.x * c.x,
+            ac.y * c.y,
+            ac.z * c.z,
+            ac.x * c.y,
+            ac.x * c.z,
+            ac.y * c.z,
+        ]
+    }
+
     /// A lit entry in this frame (as [`Self::lit_local`] gives it, or a weighted sum of such
     /// entries) back in the macro frame (`G1`, then `G2` as xx, yy, zz, xy, xz, yz).
     pub fn lit_global(&self, l: &[f64; STRIDE]) -> [f64; STRIDE] {
@@ -110,6 +129,50 @@ impl Frame {
             t1.x * u1.z + t2.x * u2.z + c.x * uc.z,
             t1.y * u1.z + t2.y * u2.z + c.y * uc.z,
         ]
+    }
+}
+
+/// A cluster's lit moments in its frame (as [`Frame::lit_local`] gives them, or a weighted sum
+/// of such), read by [`crate::bvndf::assemble_lobes`] without turning them to the macro frame:
+/// `wo` is turned into the frame instead.
+pub struct Local<'f> {
+    pub frame: &'f Frame,
+    pub l: [f64; STRIDE],
+}
+
+impl Local<'_> {
+    /// `wo` in the frame.
+    #[inline]
+    fn w(&self, wo: Vec3) -> [f64; 3] {
+        [
+            self.frame.t1.dot(wo),
+            self.frame.t2.dot(wo),
+            self.frame.c.dot(wo),
+        ]
+    }
+}
+
+impl crate::bvndf::ClusterMoments for Local<'_> {
+    #[inline]
+    fn projected(&self, wo: Vec3) -> f64 {
+        let [a, d1, d2, dc, ..] = self.l;
+        let w = self.w(wo);
+        d1 * w[0] + d2 * w[1] + (a + dc) * w[2]
+    }
+
+    #[inline]
+    fn second(&self, wo: Vec3) -> Vec3 {
+        let [a, d1, d2, _, m11, m22, m12, e1c, e2c] = self.l;
+        let (m1c, m2c, mcc) = (d1 + e1c, d2 + e2c, a - m11 - m22);
+        let w = self.w(wo);
+        let f = self.frame;
+        f.t1 * (m11 * w[0] + m12 * w[1] + m1c * w[2])
+            + f.t2 * (m12 * w[0] + m22 * w[1] + m2c * w[2])
+            + f.c * (m1c * w[0] + m2c * w[1] + mcc * w[2])
+    }
+
+    fn global(&self) -> [f64; STRIDE] {
+        self.frame.lit_global(&self.l)
     }
 }
 
