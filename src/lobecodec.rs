@@ -20,9 +20,11 @@
 //! both its numerator and its denominator, where its rounding cancels. So the deficit `1 − r`,
 //! which sets the lobe's width, is kept to a few `2⁻¹¹` of itself, not to `2⁻¹¹` of `A`.
 //! Divided by `A`, the small parts do not depend on the record's units and stay above `f16`'s
-//! smallest normal number (6.1e-5) down to spreads of about 0.6°; below that they are kept to
-//! 6e-8 absolute, which leaves `1 − r` a hundredth of the narrowest library material's width. The decoding is linear, so interpolated moments may be decoded once after
-//! the interpolation. The layout of the seen and lit parts is the `f32` record's, without its
+//! smallest normal number (6.1e-5) down to spreads of about 0.6° (`θ²/2`); below that they are
+//! kept to 6e-8 absolute, against `1/kappa ≈ α²/2 = 2e-4` for the libraries' sharpest
+//! material lobes (GGX, Beckmann or Ward at `α = 0.02`). Multiplied by `A` ([`unscale`]) the
+//! numbers are linear in the moments, so interpolated moments may be decoded once after the
+//! interpolation. The layout of the seen and lit parts is the `f32` record's, without its
 //! header: `[view][cluster][3]` then `[light][view][cluster][9]`.
 
 use crate::bvndf::STRIDE;
