@@ -91,19 +91,7 @@ impl Frame {
     /// `D` and `M` vanish) whose lit area is `a`: `(a c, a c cᵀ)`.
     #[inline]
     pub fn planar_global(&self, a: f64) -> [f64; STRIDE] {
-        let c = self.c;
-        let ac = c * a;
-        [
-            ac.x,
-            ac.y,
-            ac.z,
-            ac.x * c.x,
-            ac.y * c.y,
-            ac.z * c.z,
-            ac.x * c.y,
-            ac.x * c.z,
-            ac.y * c.z,
-        ]
+        crate::bvndf::moments(self.c).map(|x| a * x)
     }
 
     /// A lit entry in this frame (as [`Self::lit_local`] gives it, or a weighted sum of such

@@ -40,12 +40,15 @@ pub mod progress;
 
 use crate::error::{Error, Result};
 use crate::gamma::GammaLayout;
+use crate::lightlobes::LightLobes;
 use crate::store::{ArrayFile, Dtype, Expect};
 use build::{merge, Shard};
+use half::f16;
 use items::{GeometryItem, MaterialItem};
 use manifest::{Manifest, ShardTimes, StageTimes};
 use profile::LibraryProfile;
 use progress::Progress;
+use std::borrow::Cow;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -315,65 +318,53 @@ impl GeometryLobes {
         format!("{} row {j}", self.file.path.display())
     }
 
+    /// Geometry `j`'s lobes from its `f32` record.
+    fn single<'a>(&'a self, j: usize, rec: Cow<'a, [f32]>) -> Result<LightLobes<'a>> {
+        LightLobes::from_record(&self.layout, self.clusters, rec, &self.what(j))
+    }
+
+    /// Geometry `j`'s lobes from its half-precision header and moments.
+    fn half<'a>(&'a self, j: usize, head: &[f32], body: Cow<'a, [f16]>) -> Result<LightLobes<'a>> {
+        LightLobes::from_half(&self.layout, self.clusters, head, body, &self.what(j))
+    }
+
     /// Geometry `j`'s lobes (borrowed from the mapping; nothing is copied).
-    pub fn get(&self, j: usize) -> Result<crate::lightlobes::LightLobes<'_>> {
+    pub fn get(&self, j: usize) -> Result<LightLobes<'_>> {
         let rows = j * self.len..(j + 1) * self.len;
         let missing = || Error::new(self.what(j), "no such geometry");
         match &self.heads {
             None => {
                 let rec = self.file.f32s()?.get(rows).ok_or_else(missing)?;
-                crate::lightlobes::LightLobes::from_record(
-                    &self.layout,
-                    self.clusters,
-                    std::borrow::Cow::Borrowed(rec),
-                    &self.what(j),
-                )
+                self.single(j, Cow::Borrowed(rec))
             }
             Some(h) => {
                 let k = self.clusters * crate::lightlobes::HEAD;
                 let head = h.f32s()?.get(j * k..(j + 1) * k).ok_or_else(missing)?;
                 let body = self.file.f16s()?.get(rows).ok_or_else(missing)?;
-                crate::lightlobes::LightLobes::from_half(
-                    &self.layout,
-                    self.clusters,
-                    head,
-                    std::borrow::Cow::Borrowed(body),
-                    &self.what(j),
-                )
+                self.half(j, head, Cow::Borrowed(body))
             }
         }
     }
 
     /// Geometry `j`'s lobes copied out with positioned reads (a pass over every geometry
     /// through the map would keep the whole file resident).
-    pub fn read(&self, j: usize) -> Result<crate::lightlobes::LightLobes<'_>> {
-        let size = self.file.header.dtype.size();
+    pub fn read(&self, j: usize) -> Result<LightLobes<'_>> {
+        let at = j * self.len * self.file.header.dtype.size();
         match &self.heads {
             None => {
                 let mut rec = vec![0f32; self.len];
                 self.file
-                    .read_data(j * self.len * size, bytemuck::cast_slice_mut(&mut rec))?;
-                crate::lightlobes::LightLobes::from_record(
-                    &self.layout,
-                    self.clusters,
-                    std::borrow::Cow::Owned(rec),
-                    &self.what(j),
-                )
+                    .read_data(at, bytemuck::cast_slice_mut(&mut rec))?;
+                self.single(j, Cow::Owned(rec))
             }
             Some(h) => {
                 let k = self.clusters * crate::lightlobes::HEAD;
                 let mut head = vec![0f32; k];
                 h.read_data(j * k * 4, bytemuck::cast_slice_mut(&mut head))?;
-                let mut body = vec![half::f16::ZERO; self.len];
+                let mut body = vec![f16::ZERO; self.len];
                 self.file
-                    .read_data(j * self.len * size, bytemuck::cast_slice_mut(&mut body))?;
-                crate::lightlobes::LightLobes::from_half(
-                    &self.layout,
-                    self.clusters,
-                    &head,
-                    std::borrow::Cow::Owned(body),
-                    &self.what(j),
-                )
+                    .read_data(at, bytemuck::cast_slice_mut(&mut body))?;
+                self.half(j, &head, Cow::Owned(body))
             }
         }
     }
