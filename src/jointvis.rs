@@ -249,10 +249,14 @@ pub(crate) fn joint_moments(
     let cell = side * side * STRIDE;
     let n_pairs = n_nodes * (n_nodes + 1) / 2;
 
+    // One histogram buffer per worker, zeroed by writing: a fresh zeroed allocation per cluster
+    // (tens of MB) would be mapped to the zero page, and its first `+=` on each page would fault
+    // twice, the second time copying the page and flushing the other core's TLB.
     let per_cluster: Vec<(Vec<f32>, Vec<[f64; STRIDE]>)> = members
         .par_iter()
-        .map(|fs| {
-            let mut hist = vec![0.0f64; n_jp * cell];
+        .map_init(Vec::new, |hist: &mut Vec<f64>, fs| {
+            hist.clear();
+            hist.resize(n_jp * cell, 0.0);
             for &fi in fs {
                 let f = &facets[fi];
                 let m = moments(f.n);
