@@ -8,6 +8,7 @@ use crate::bvndf::{CompactBvndf, LobeSource};
 use crate::frame::DirPair;
 use crate::prefilter::{prepare, PrefilterConfig, Prefiltered, PreparedLobe};
 use crate::vmf::Vmf;
+use rayon::prelude::*;
 
 /// `fbar` at one pair, reusing `scratch` for the lobes.
 #[inline]
@@ -40,14 +41,25 @@ pub const FACET_WIDTH: f64 = 0.06;
 
 /// `fbar` at every pair for a material prefiltered with [`Prefiltered::build_split`]: the
 /// table's part from the lobes, plus the sharp lobes summed over the curved clusters' facets
-/// ([`CompactBvndf::sharp_fbar`]). For any other table, the same as [`fbar`].
+/// ([`CompactBvndf::sharp_fbar`]). For any other table, the same as [`fbar`]. The pairs are
+/// shared among the threads in blocks of [`PAIR_BLOCK`]; each pair's value is computed alone,
+/// so the result does not depend on the number of threads.
 pub fn fbar_with_facets(geo: &CompactBvndf, mat: &Prefiltered, pairs: &[DirPair]) -> Vec<f64> {
-    let mut scratch = Vec::with_capacity(geo.clusters());
     pairs
-        .iter()
-        .map(|p| fbar_one_with_facets(geo, mat, p, &mut scratch))
+        .par_chunks(PAIR_BLOCK)
+        .flat_map_iter(|block| {
+            let mut scratch = Vec::with_capacity(geo.clusters());
+            block
+                .iter()
+                .map(|p| fbar_one_with_facets(geo, mat, p, &mut scratch))
+                .collect::<Vec<_>>()
+        })
         .collect()
 }
+
+/// Pairs per parallel task of [`fbar_with_facets`]: a pair with sub-lobes costs tens of
+/// microseconds, so a block is long enough to outweigh a task's overhead.
+pub const PAIR_BLOCK: usize = 32;
 
 /// [`fbar_with_facets`] at one pair, reusing `scratch` for the lobes.
 pub fn fbar_one_with_facets(

@@ -911,13 +911,22 @@ impl Part {
         Ok(sum.to_string())
     }
 
+    /// A writer of the joined file (`items × len`), to be filled in item order.
+    fn create_joined(&self, dir: &Path) -> Result<ArrayWriter> {
+        ArrayWriter::create(
+            &dir.join(self.joined),
+            self.name,
+            self.dtype,
+            &[self.items, self.len],
+        )
+    }
+
     /// Join the chunks into the joined file; returns its checksum. With `consume`, each chunk
     /// is removed once it is appended, so the merge needs the library's size in free disk once,
     /// not twice (123 GB for `paper`). Call [`Part::open_chunk`] on every chunk of every part
     /// first: a merge started before all shards are built then removes nothing.
     fn assemble(&self, dir: &Path, chunk: usize, consume: bool, bar: &Bar) -> Result<String> {
-        let out = dir.join(self.joined);
-        let mut w = ArrayWriter::create(&out, self.name, self.dtype, &[self.items, self.len])?;
+        let mut w = self.create_joined(dir)?;
         for k in 0..self.items.div_ceil(chunk) {
             let f = self.open_chunk(dir, chunk, k, true)?;
             w.write(f.bytes())?;
@@ -1423,18 +1432,7 @@ pub fn convert_lobes_to_half(
     let n = old.len();
     let parts = parts(&half, n, 0);
     let (heads, body) = (&parts[1], &parts[2]);
-    let mut wh = ArrayWriter::create(
-        &dir.join(heads.joined),
-        heads.name,
-        heads.dtype,
-        &[n, heads.len],
-    )?;
-    let mut wb = ArrayWriter::create(
-        &dir.join(body.joined),
-        body.name,
-        body.dtype,
-        &[n, body.len],
-    )?;
+    let (mut wh, mut wb) = (heads.create_joined(dir)?, body.create_joined(dir)?);
     let bar = progress.bar(n as u64, "refit: light lobes to half precision");
     let (k, views) = (prof.geometry.lobe_clusters, old.layout.views.len());
     for start in (0..n).step_by(256) {
