@@ -211,19 +211,20 @@ pub fn ball_close(g: &Grid, r_mm: f64) -> Vec<f64> {
 
 /// Running maximum over windows `[i, i + len)` of `src` into `out` (van Herk / Gil–Werman).
 fn window_max(src: &[f64], len: usize, pre: &mut Vec<f64>, suf: &mut Vec<f64>, out: &mut [f64]) {
-    let n = src.len();
     pre.clear();
     pre.extend_from_slice(src);
     suf.clear();
     suf.extend_from_slice(src);
-    for i in 1..n {
-        if i % len != 0 && pre[i - 1] > pre[i] {
-            pre[i] = pre[i - 1];
+    // Block by block of `len` (no division per sample): prefix maxima forwards, suffix
+    // maxima backwards, each restarting at the block's edge.
+    for block in pre.chunks_mut(len.max(1)) {
+        for i in 1..block.len() {
+            block[i] = block[i].max(block[i - 1]);
         }
     }
-    for i in (0..n.saturating_sub(1)).rev() {
-        if (i + 1) % len != 0 && suf[i + 1] > suf[i] {
-            suf[i] = suf[i + 1];
+    for block in suf.chunks_mut(len.max(1)) {
+        for i in (0..block.len().saturating_sub(1)).rev() {
+            block[i] = block[i].max(block[i + 1]);
         }
     }
     for (i, o) in out.iter_mut().enumerate() {
@@ -264,10 +265,10 @@ pub fn flat_dilate_cells(w: usize, h: usize, z: &[f64], r_cells: f64) -> Vec<f64
             }
             let src = &ext[sy * pw + pad - a..sy * pw + pad + a + w];
             window_max(src, 2 * a + 1, &mut pre, &mut suf, &mut tmp);
+            // `max`, not a conditional store (which compiles to a masked store, microcoded on
+            // AMD processors; see `ball_dilate`).
             for (v, t) in o.iter_mut().zip(&tmp) {
-                if *t > *v {
-                    *v = *t;
-                }
+                *v = v.max(*t);
             }
         }
     });
