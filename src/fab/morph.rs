@@ -340,7 +340,13 @@ mod tests {
     #[test]
     fn ball_dilation_matches_brute_force() {
         let mut rng = crate::rng::Rng::new(9);
-        for (w, h, r_mm) in [(37, 11, 0.45), (32, 20, 0.3), (21, 7, 2.5), (16, 16, 0.05)] {
+        for (w, h, r_mm) in [
+            (37, 11, 0.45),
+            (32, 20, 0.3),
+            (21, 7, 2.5),
+            (20, 8, 2.5),
+            (16, 16, 0.05),
+        ] {
             let z: Vec<f64> = (0..w * h).map(|_| rng.range(-1.0, 1.0)).collect();
             let g = Grid {
                 w,
