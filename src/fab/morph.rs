@@ -9,8 +9,9 @@
 //! symmetric); closing is erosion after dilation, opening the reverse.
 //!
 //! Cost: a ball costs `O(N · K)` for `N` samples and `K` kernel offsets (rows in parallel; a
-//! block of 16 outputs in registers while every offset passes over it); a flat disc is decomposed into one horizontal segment per kernel
-//! row and each segment maximum is a van Herk / Gil–Werman running maximum, `O(N · rows)`.
+//! block of 16 outputs in registers while every offset passes over it); a flat disc is
+//! decomposed into one horizontal segment per kernel row and each segment maximum is a van
+//! Herk / Gil–Werman running maximum, `O(N · rows)`.
 //! Every output sample is computed independently, so the result does not depend on threads.
 
 use crate::heightfield::Heightfield;
