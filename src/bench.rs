@@ -11,7 +11,7 @@ use crate::heightfield::Heightfield;
 use crate::library::progress::Progress;
 use crate::lightlobes::LightLobes;
 use crate::material::parse_material;
-use crate::pairs::default_pairs;
+use crate::pairs::{default_pairs, AnglePair};
 use crate::prefilter::{PrefilterConfig, Prefiltered};
 use crate::rng::Rng;
 use std::time::Instant;
@@ -66,6 +66,99 @@ pub fn relative_rms(got: &[f64], want: &[f64]) -> f64 {
     } else {
         num.sqrt()
     }
+}
+
+/// [`relative_rms`] over the pairs whose two directions are within 85° of the normal.
+fn relative_rms_85(pairs: &[AnglePair], got: &[f64], want: &[f64]) -> f64 {
+    let keep: Vec<usize> = (0..pairs.len())
+        .filter(|&i| pairs[i].theta_i <= 85.0 && pairs[i].theta_o <= 85.0)
+        .collect();
+    let pick = |v: &[f64]| keep.iter().map(|&i| v[i]).collect::<Vec<f64>>();
+    relative_rms(&pick(got), &pick(want))
+}
+
+/// The cases of `bench exact` (geometry, material): sharp and moderate glossy lobes on rough
+/// and smooth surfaces, where few facets carry the sum, and a broad blend for comparison.
+pub const EXACT_CASES: [(&str, &str); 5] = [
+    ("fbm:n=32,amplitude=1.5,seed=4", "ggx:alpha=0.03"),
+    ("fbm:n=32,amplitude=1.5,seed=4", "ggx:alpha=0.1"),
+    ("fbm:n=64,amplitude=3,seed=4", "ggx:alpha=0.1"),
+    (
+        "bumps:n=64,count=8,radius=10,height=3,seed=2",
+        "ggx:alpha=0.01",
+    ),
+    (
+        "sine:n=64,period=8,amplitude=3.5",
+        "ward:alpha=0.117+lambert:albedo=0.17",
+    ),
+];
+
+/// The exact method's own error table: at the 490 default pairs, for each (geometry,
+/// material) case, the estimate of its error ([`crate::exact::Estimated::noise`]) and its
+/// error against the method at `reference` rays per cell side, at 2 × 2 rays and with the
+/// automatic choice ([`crate::exact::fbar_to_tolerance`] at `tol`, `forward`'s default), with
+/// the times.
+pub fn exact(
+    cases: &[(String, String)],
+    reference: usize,
+    tol: f64,
+    progress: &Progress,
+) -> Result<String> {
+    let bar = progress.bar(cases.len() as u64, "bench exact: cases");
+    let pairs = default_pairs(70);
+    let dirs: Vec<DirPair> = pairs.iter().map(|p| p.dirs()).collect();
+    // Every case is read before any is computed, so a bad one fails at once.
+    let inputs = cases
+        .iter()
+        .map(|(gs, ms)| {
+            Ok((
+                gs,
+                ms,
+                crate::heightmap_io::resolve_geometry(gs, 10.0, 1.0)
+                    .map_err(|e| e.within("--case"))?,
+                parse_material(ms).map_err(|e| e.within("--case"))?,
+            ))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let mut rows = String::new();
+    for (gs, ms, hf, mat) in inputs {
+        let truth = ExactEvaluator::new(&hf, reference).fbar(&mat, &dirs);
+        let t = Instant::now();
+        let fixed = ExactEvaluator::new(&hf, 2).fbar_many_estimated(&[&mat], &dirs);
+        let fixed_s = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let auto = crate::exact::fbar_to_tolerance(&hf, &[&mat], &dirs, tol);
+        let auto_s = t.elapsed().as_secs_f64();
+        let errors = |v: &[f64]| {
+            format!(
+                "{:.2} % / {:.2} %",
+                100.0 * relative_rms(v, &truth),
+                100.0 * relative_rms_85(&pairs, v, &truth)
+            )
+        };
+        let passes: Vec<String> = auto
+            .passes
+            .iter()
+            .map(|(n, e)| format!("{n}×{n}: {:.2} %", 100.0 * e))
+            .collect();
+        rows.push_str(&format!(
+            "| `{gs}` | `{ms}` | {:.2} % | {} | {fixed_s:.2} s | {} | {} | {auto_s:.2} s |\n",
+            100.0 * fixed.noise,
+            errors(&fixed.values[0]),
+            passes.join(" → "),
+            errors(&auto.values[0]),
+        ));
+        bar.inc(1);
+    }
+    bar.finish();
+    Ok(format!(
+        "The exact method's error against itself at {reference}×{reference} view rays per cell \
+         (relative RMS over the 490 default pairs / over those up to 85°), at 2×2 rays and with \
+         the automatic choice of `forward` (tolerance {:.2} % on the estimated error)\n\n\
+         | geometry | material | 2×2: estimated | 2×2: error all / ≤ 85° | 2×2: time | automatic: rays and estimate per pass | automatic: error all / ≤ 85° | automatic: time |\n\
+         |---|---|---|---|---|---|---|---|\n{rows}",
+        100.0 * tol
+    ))
 }
 
 /// Speed table: compact BVNDF build of 128² geometries, prefiltered material build, and one
@@ -281,11 +374,7 @@ pub fn accuracy(
         let pre = Prefiltered::build_split(&mat, &PrefilterConfig::default(), FACET_WIDTH);
         let fast = crate::fast::fbar_with_facets(&geo, &pre, &dirs);
         let e = relative_rms(&fast, &exact);
-        let keep: Vec<usize> = (0..pairs.len())
-            .filter(|&i| pairs[i].theta_i <= 85.0 && pairs[i].theta_o <= 85.0)
-            .collect();
-        let pick = |v: &[f64]| keep.iter().map(|&i| v[i]).collect::<Vec<f64>>();
-        let e85 = relative_rms(&pick(&fast), &pick(&exact));
+        let e85 = relative_rms_85(&pairs, &fast, &exact);
         errs.push(e);
         errs85.push(e85);
         rows.push_str(&format!(
@@ -384,5 +473,38 @@ mod tests {
             let (_, sharp) = m.split_by_width(FACET_WIDTH);
             assert_eq!(sharp.lobes.len(), 1, "{spec}");
         }
+    }
+
+    #[test]
+    fn the_exact_table_has_a_row_per_case_and_reads_every_case_first() {
+        let quiet = Progress { quiet: true };
+        let case = |g: &str, m: &str| (g.to_string(), m.to_string());
+        let t = exact(
+            &[case("vgroove:n=8,period=4", "lambert:albedo=0.5")],
+            3,
+            0.005,
+            &quiet,
+        )
+        .unwrap();
+        let rows: Vec<&str> = t.lines().filter(|l| l.starts_with("| `")).collect();
+        assert_eq!(rows.len(), 1, "{t}");
+        assert!(
+            rows[0].contains("`vgroove:n=8,period=4`") && rows[0].contains("2×2: "),
+            "{t}"
+        );
+        assert!(!t.contains("NaN"), "{t}");
+        // The bad second case fails before the first is computed.
+        let e = exact(
+            &[
+                case("fbm:n=256,seed=1", "ggx:alpha=0.01"),
+                case("flat", "ggx:alpha=-1"),
+            ],
+            64,
+            0.005,
+            &quiet,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("--case") && e.contains("alpha"), "{e}");
     }
 }

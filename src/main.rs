@@ -145,9 +145,14 @@ enum Cmd {
         #[arg(long, default_value_t = 1.0)]
         height_scale: f64,
         /// Exact method: view rays per cell side (s² rays through each heightmap cell; its noise
-        /// on sharp lobes falls as this grows, the cost grows with its square).
-        #[arg(long, default_value_t = 2, value_parser = in_range::<usize>(1, 16))]
-        exact_samples: usize,
+        /// on sharp lobes falls as this grows, the cost grows with its square). Default: 2, raised
+        /// (up to 8) until the estimated error is within --exact-tol
+        #[arg(long, value_parser = in_range::<usize>(1, 16))]
+        exact_samples: Option<usize>,
+        /// Exact method without --exact-samples: the estimated relative RMS error to reach (from
+        /// the difference of its two one-sided estimates; 0.005 = 0.5 %)
+        #[arg(long, default_value_t = biscale::forward::DEFAULT_EXACT_TOL, value_parser = in_range::<f64>(1e-4, 0.5))]
+        exact_tol: f64,
         /// Fast method: the compact BVNDF's build.
         #[command(flatten)]
         build: BvndfArgs,
@@ -471,6 +476,19 @@ enum BenchCmd {
         #[arg(long, default_value_t = 3, value_parser = in_range::<usize>(1, 100_000))]
         reps: usize,
     },
+    /// The exact method's own error: its estimate, and its error against itself with many more
+    /// rays, at 2 × 2 rays per cell and with `forward`'s automatic choice.
+    Exact {
+        /// A case 'GEOMETRY|MATERIAL' (repeatable); default: five sharp and broad cases.
+        #[arg(long = "case")]
+        cases: Vec<String>,
+        /// View rays per cell side of the reference.
+        #[arg(long, default_value_t = 16, value_parser = in_range::<usize>(1, 64))]
+        reference: usize,
+        /// Tolerance of the automatic choice on the estimated relative RMS error.
+        #[arg(long, default_value_t = biscale::forward::DEFAULT_EXACT_TOL, value_parser = in_range::<f64>(1e-4, 0.5))]
+        tol: f64,
+    },
     /// Error of the fast evaluator against the exact one over random geometries and materials.
     Accuracy {
         #[arg(long, default_value_t = 24, value_parser = in_range::<usize>(1, 1_000_000))]
@@ -542,6 +560,7 @@ fn main() -> ExitCode {
             patch_size,
             height_scale,
             exact_samples,
+            exact_tol,
             build,
             quiet,
         } => {
@@ -560,6 +579,7 @@ fn main() -> ExitCode {
                 patch_size_mm: patch_size,
                 height_scale,
                 exact_samples,
+                exact_tol,
                 bvndf: build.config(),
                 quiet,
                 ..ForwardJob::default()
@@ -788,6 +808,34 @@ fn main() -> ExitCode {
             )
             .and_then(|p| biscale::fab::bench::bench_fab(&p, reps.max(1)))
             .map(|t| print!("{t}")),
+            BenchCmd::Exact {
+                cases,
+                reference,
+                tol,
+            } => {
+                let cases: std::result::Result<Vec<(String, String)>, biscale::Error> =
+                    if cases.is_empty() {
+                        Ok(biscale::bench::EXACT_CASES
+                            .iter()
+                            .map(|(g, m)| (g.to_string(), m.to_string()))
+                            .collect())
+                    } else {
+                        cases
+                            .iter()
+                            .map(|c| match c.split_once('|') {
+                                Some((g, m)) => Ok((g.to_string(), m.to_string())),
+                                None => Err(biscale::Error::new(
+                                    "--case",
+                                    format!("'{c}': expected GEOMETRY|MATERIAL"),
+                                )),
+                            })
+                            .collect()
+                    };
+                cases.and_then(|c| {
+                    biscale::bench::exact(&c, reference, tol, &Progress { quiet })
+                        .map(|t| print!("{t}"))
+                })
+            }
             BenchCmd::Accuracy {
                 cases,
                 seed,

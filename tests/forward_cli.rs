@@ -285,6 +285,13 @@ fn happy_path_exact_and_fast() {
             out.to_str().unwrap(),
         ]);
         assert!(okay, "{method}: {stderr}");
+        if method == "exact" {
+            // The log gives the rays and the estimated error of the automatic choice.
+            assert!(
+                stderr.contains("2×2: ") && stderr.contains("--exact-tol"),
+                "{stderr}"
+            );
+        }
         let (header, rows) = read_out(&out);
         assert_eq!(header, "theta_i,phi_i,theta_o,phi_o,fbar,brdf");
         check_brdf_column(&rows, method);
