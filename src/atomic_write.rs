@@ -119,7 +119,12 @@ pub fn create_temp(path: &Path) -> Result<(PathBuf, File)> {
         match File::create_new(&tmp) {
             Ok(f) => return Ok((tmp, f)),
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => last = Some((tmp, e)),
-            Err(e) => return Err(Error::io(&tmp, "create the temporary file", e)),
+            Err(e) => {
+                return Err(Error::new(
+                    path.display().to_string(),
+                    format!("cannot create the temporary file {}: {e}", tmp.display()),
+                ))
+            }
         }
     }
     match last {
@@ -175,12 +180,57 @@ pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
     write_with(path, |w| w.write_all(bytes))
 }
 
+/// Where a write to `path` lands: `path` itself, or, when it is a symbolic link, the file the
+/// link names (followed through up to 40 links; a link whose target does not exist yet names
+/// the file to create). Renaming a temporary file over a link would replace the link itself.
+fn destination(path: &Path) -> PathBuf {
+    let mut p = path.to_path_buf();
+    for _ in 0..40 {
+        match std::fs::symlink_metadata(&p) {
+            Ok(m) if m.file_type().is_symlink() => match std::fs::read_link(&p) {
+                Ok(target) => {
+                    p = match p.parent() {
+                        Some(dir) if target.is_relative() => dir.join(target),
+                        _ => target,
+                    }
+                }
+                Err(_) => break,
+            },
+            _ => break,
+        }
+    }
+    p
+}
+
+/// Whether `path` is something other than a regular file or a directory that a write should
+/// go into rather than replace: a device (`/dev/null`), a named pipe, a socket.
+fn is_special(path: &Path) -> bool {
+    use std::os::unix::fs::FileTypeExt;
+    std::fs::metadata(path).is_ok_and(|m| {
+        let t = m.file_type();
+        t.is_char_device() || t.is_block_device() || t.is_fifo() || t.is_socket()
+    })
+}
+
 /// Write through `fill` into a temporary file, then rename it to `path`. On any error the
-/// temporary file is removed and `path` is left as it was.
+/// temporary file is removed and `path` is left as it was. A symbolic link is followed (the
+/// file it names is replaced, not the link), and a device or a named pipe at `path` (such as
+/// `/dev/null`) is written to directly, as a shell's redirection would, not replaced by a file.
 pub fn write_with(
     path: &Path,
     fill: impl FnOnce(&mut std::io::BufWriter<File>) -> std::io::Result<()>,
 ) -> Result<()> {
+    let path = &destination(path);
+    if is_special(path) {
+        let f = std::fs::OpenOptions::new()
+            .write(true)
+            .open(path)
+            .map_err(|e| Error::io(path, "open for writing", e))?;
+        let mut w = std::io::BufWriter::new(f);
+        return fill(&mut w)
+            .and_then(|_| w.flush())
+            .map_err(|e| Error::io(path, "write", e));
+    }
     if let Some(dir) = path.parent() {
         if !dir.as_os_str().is_empty() {
             std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, "create the directory", e))?;
@@ -200,7 +250,7 @@ pub fn write_with(
     }
     std::fs::rename(&tmp, path).map_err(|e| {
         let _ = std::fs::remove_file(&tmp);
-        Error::io(path, "rename the finished temporary file onto", e)
+        Error::io(path, "rename the finished temporary file onto it", e)
     })
 }
 
@@ -256,6 +306,42 @@ mod tests {
         assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0);
         write_bytes(&p, b"ok").unwrap();
         assert_eq!(std::fs::read(&p).unwrap(), b"ok");
+    }
+
+    #[test]
+    fn links_are_followed_and_pipes_written_into() {
+        let dir = TestDir::new("aw-special");
+        // A symbolic link: the file it names is replaced, the link stays a link.
+        let target = dir.join("target.csv");
+        std::fs::write(&target, "old").unwrap();
+        let link = dir.join("link.csv");
+        std::os::unix::fs::symlink("target.csv", &link).unwrap();
+        write_bytes(&link, b"new").unwrap();
+        assert!(std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink());
+        assert_eq!(std::fs::read(&target).unwrap(), b"new");
+        // A named pipe is written into, not replaced by a file.
+        let fifo = dir.join("fifo.csv");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        if made.is_ok_and(|s| s.success()) {
+            let reader = {
+                let fifo = fifo.clone();
+                std::thread::spawn(move || std::fs::read(&fifo).unwrap())
+            };
+            write_bytes(&fifo, b"through the pipe").unwrap();
+            assert_eq!(reader.join().unwrap(), b"through the pipe");
+            use std::os::unix::fs::FileTypeExt;
+            assert!(std::fs::metadata(&fifo).unwrap().file_type().is_fifo());
+        }
+        // Nothing else was left in the directory.
+        let mut names: Vec<String> = std::fs::read_dir(&*dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        assert!(names.iter().all(|n| !n.contains(".tmp-")), "{names:?}");
     }
 
     #[test]

@@ -81,7 +81,34 @@ fn available_memory() -> Option<f64> {
 
 fn log(quiet: bool, msg: impl AsRef<str>) {
     if !quiet {
-        eprintln!("biscale forward: {}", msg.as_ref());
+        crate::library::progress::line(&format!("biscale forward: {}", msg.as_ref()));
+    }
+}
+
+/// `--out` before any work: a file path (not a directory, nor a path ending in `/`) in a
+/// directory that exists (a mistyped directory is not created).
+fn check_out(out: &std::path::Path) -> Result<()> {
+    let name = out.display().to_string();
+    if out.is_dir() || name.ends_with('/') {
+        let why = if out.is_dir() {
+            "is a directory"
+        } else {
+            "ends with '/', which names a directory"
+        };
+        return Err(Error::new(
+            "--out",
+            format!("{name} {why}; expected a CSV file path"),
+        ));
+    }
+    match out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        Some(dir) if !dir.is_dir() => Err(Error::new(
+            "--out",
+            format!(
+                "{name}: the directory {} does not exist; expected a file in an existing directory",
+                dir.display()
+            ),
+        )),
+        _ => Ok(()),
     }
 }
 
@@ -112,12 +139,7 @@ pub fn load_inputs(job: &ForwardJob) -> Result<(Vec<AnglePair>, Material, Height
 
 pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
     if let Some(out) = &job.out {
-        if out.is_dir() {
-            return Err(Error::new(
-                out.display().to_string(),
-                "is a directory; expected a CSV file path",
-            ));
-        }
+        check_out(out)?;
     }
     let t0 = Instant::now();
     let (pairs, mat, hf) = load_inputs(job)?;
@@ -269,7 +291,7 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
     };
     let csv = format_output(&pairs, &fbar);
     if let Some(out) = &job.out {
-        crate::atomic_write::write_bytes(out, csv.as_bytes())?;
+        crate::atomic_write::write_bytes(out, csv.as_bytes()).map_err(|e| e.within("--out"))?;
         log(job.quiet, format!("wrote {}", out.display()));
     }
     Ok(ForwardResult { pairs, fbar, csv })

@@ -301,6 +301,12 @@ pub fn parse_generator(spec: &str) -> Result<Generator> {
         }
         let prm = def.params[idx];
         values[idx] = Some(match prm.rule {
+            Rule::Text if val.is_empty() => {
+                return Err(Error::new(
+                    ctx,
+                    format!("key '{key}' has no value; expected one (or leave the key out)"),
+                ))
+            }
             Rule::Text => Value::Text(val.to_string()),
             _ => {
                 let v: f64 = val.parse().map_err(|_| {
@@ -1315,6 +1321,7 @@ mod tests {
             ("vgroove:period=4,period=5", &["twice"]),
             ("texture:tex=nope", &["tex", "cells"]),
             ("texture:tex=cells,file=a.png", &["not both"]),
+            ("texture:n=16,file=", &["file", "no value"]),
             ("fbm:persistence=0", &["persistence"]),
         ];
         for (spec, needles) in cases {

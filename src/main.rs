@@ -528,9 +528,23 @@ fn forward_help() -> String {
     )
 }
 
+/// Write a command's result to standard output. A closed pipe (`biscale … | head`) ends the
+/// output quietly; any other failure (a full disk) is an error naming standard output.
+fn emit(text: &str) -> biscale::Result<()> {
+    use std::io::Write;
+    let mut o = std::io::stdout().lock();
+    match o.write_all(text.as_bytes()).and_then(|_| o.flush()) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(biscale::Error::new(
+            "standard output",
+            format!("cannot write: {e}"),
+        )),
+        _ => Ok(()),
+    }
+}
+
 fn main() -> ExitCode {
     if let Err(e) = biscale::cpu::check() {
-        eprintln!("biscale: error: {e}");
+        biscale::library::progress::line(&format!("biscale: error: {e}"));
         return ExitCode::from(2);
     }
     let cli = Cli::parse();
@@ -550,7 +564,7 @@ fn main() -> ExitCode {
             cache_dir,
             quiet,
         })
-        .map(|t| print!("{t}")),
+        .and_then(|t| emit(&t)),
         Cmd::Forward {
             geometry,
             material,
@@ -584,11 +598,7 @@ fn main() -> ExitCode {
                 quiet,
                 ..ForwardJob::default()
             };
-            biscale::forward::run(&job).map(|r| {
-                if to_stdout {
-                    print!("{}", r.csv);
-                }
-            })
+            biscale::forward::run(&job).and_then(|r| if to_stdout { emit(&r.csv) } else { Ok(()) })
         }
         Cmd::Solve {
             target,
@@ -672,7 +682,7 @@ fn main() -> ExitCode {
                     quiet,
                 })
             })
-            .map(|t| print!("{t}")),
+            .and_then(|t| emit(&t)),
         Cmd::Validate {
             library,
             profile,
@@ -729,7 +739,7 @@ fn main() -> ExitCode {
                         },
                     )
                 })
-                .map(|t| print!("{t}"))
+                .and_then(|t| emit(&t))
         }
         Cmd::Library { what } => match what {
             LibraryCmd::Build {
@@ -755,39 +765,39 @@ fn main() -> ExitCode {
                         force,
                     })
                 })
-                .map(|t| print!("{t}")),
+                .and_then(|t| emit(&t)),
             LibraryCmd::Merge {
                 dir,
                 keep_chunks,
                 quiet,
-            } => biscale::library::commands::merge(&dir, quiet, keep_chunks).map(|t| print!("{t}")),
+            } => biscale::library::commands::merge(&dir, quiet, keep_chunks).and_then(|t| emit(&t)),
             LibraryCmd::Refit {
                 dir,
                 material_search_energy,
                 half_lobes,
                 quiet,
             } => biscale::library::commands::refit(&dir, material_search_energy, half_lobes, quiet)
-                .map(|t| print!("{t}")),
+                .and_then(|t| emit(&t)),
             LibraryCmd::Info { dir } => {
-                biscale::library::commands::info(&dir).map(|t| print!("{t}"))
+                biscale::library::commands::info(&dir).and_then(|t| emit(&t))
             }
             LibraryCmd::Verify { dir } => {
-                biscale::library::commands::verify(&dir).map(|t| print!("{t}"))
+                biscale::library::commands::verify(&dir).and_then(|t| emit(&t))
             }
         },
         Cmd::Bench { what, quiet } => match what {
             BenchCmd::Speed { reps } => {
-                biscale::bench::speed(reps.max(1), &Progress { quiet }).map(|t| print!("{t}"))
+                biscale::bench::speed(reps.max(1), &Progress { quiet }).and_then(|t| emit(&t))
             }
             BenchCmd::Scan {
                 items,
                 reps,
                 samples,
                 seed,
-            } => biscale::solve::bench::scan(items, reps, samples, seed).map(|t| print!("{t}")),
+            } => biscale::solve::bench::scan(items, reps, samples, seed).and_then(|t| emit(&t)),
             BenchCmd::LibrarySpeed { profile, sample } => {
                 biscale::library::bench::speed(&profile, sample.max(1), &Progress { quiet })
-                    .map(|t| print!("{t}"))
+                    .and_then(|t| emit(&t))
             }
             BenchCmd::LibraryAccuracy {
                 dir,
@@ -801,13 +811,13 @@ fn main() -> ExitCode {
                 seed,
                 &Progress { quiet },
             )
-            .map(|t| print!("{t}")),
+            .and_then(|t| emit(&t)),
             BenchCmd::Fab { profile, reps } => biscale::fab::profile::load_profile(
                 &profile,
                 &biscale::fab::profile::FabPaths::default_paths(),
             )
             .and_then(|p| biscale::fab::bench::bench_fab(&p, reps.max(1)))
-            .map(|t| print!("{t}")),
+            .and_then(|t| emit(&t)),
             BenchCmd::Exact {
                 cases,
                 reference,
@@ -833,7 +843,7 @@ fn main() -> ExitCode {
                     };
                 cases.and_then(|c| {
                     biscale::bench::exact(&c, reference, tol, &Progress { quiet })
-                        .map(|t| print!("{t}"))
+                        .and_then(|t| emit(&t))
                 })
             }
             BenchCmd::Accuracy {
@@ -849,14 +859,14 @@ fn main() -> ExitCode {
                     exact_samples,
                 };
                 biscale::bench::accuracy(cases.max(1), seed, &cfg, &opt, &Progress { quiet })
-                    .map(|t| print!("{t}"))
+                    .and_then(|t| emit(&t))
             }
         },
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("biscale: error: {e}");
+            biscale::library::progress::line(&format!("biscale: error: {e}"));
             ExitCode::from(2)
         }
     }

@@ -163,11 +163,11 @@ impl Tally {
                     )
                 })
             };
-            eprintln!(
+            crate::library::progress::line(&format!(
                 "validate: case {case}: {name} did not find the exhaustive optimum: answer {}, scan {}",
                 show(solver),
                 show(scan)
-            );
+            ));
         }
     }
     fn q(v: &[f64], f: f64) -> f64 {
@@ -394,7 +394,7 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
             tally.add(err, best.as_ref().is_some_and(recovered), secs);
             tally.stages.extend(stages);
             if err > crate::solve::job::MATCH_BOUND && !job.quiet {
-                eprintln!(
+                crate::library::progress::line(&format!(
                     "validate: case {}: {name} missed 7 %: {} (geometry {g} '{}', material {m} '{}'), answer {}",
                     c + 1,
                     if err.is_finite() { format!("{:.2} %", err * 100.0) } else { "no answer".into() },
@@ -404,7 +404,7 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
                         "geometry {:?} material {:?} psi {:.0}",
                         b.geometry, b.material, b.psi_deg
                     )),
-                );
+                ));
             }
             Ok((best, err))
         };
@@ -465,12 +465,12 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
             )?;
         }
         if !job.quiet {
-            eprintln!(
+            crate::library::progress::line(&format!(
                 "validate: case {}/{} done ({:.0} s)",
                 c + 1,
                 job.cases,
                 t_all.elapsed().as_secs_f64()
-            );
+            ));
         }
     }
     let row = |name: &str, t: &Tally| {

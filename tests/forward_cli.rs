@@ -181,6 +181,12 @@ fn nonsense_input_is_rejected_clearly() {
     let mut a = base("vgroove:n=16", "lambert:albedo=0.5", pairs_s);
     a[i + 1] = pairs.join("o.csv").to_str().unwrap().to_string();
     run(a, &["pairs.csv"]);
+    // The output's directory does not exist: refused, and not created.
+    let mut a = base("vgroove:n=16", "lambert:albedo=0.5", pairs_s);
+    let missing = dir.join("no_such_dir");
+    a[i + 1] = missing.join("o.csv").to_str().unwrap().to_string();
+    run(a, &["--out", "no_such_dir", "does not exist"]);
+    assert!(!missing.exists(), "the missing directory was created");
     // Lobe counts out of range name the option and the range.
     for opt in ["--clusters", "--sub-lobes"] {
         let mut a = base("vgroove:n=16", "lambert:albedo=0.5", pairs_s);
@@ -317,6 +323,60 @@ fn happy_path_exact_and_fast() {
         "{stdout}"
     );
     assert!(!dir.join("-").exists());
+}
+
+/// Standard output that goes away (`| head`) ends the output quietly; a full disk there is an
+/// error naming standard output; neither panics.
+#[test]
+fn results_to_a_closed_or_full_standard_output() {
+    let dir = TestDir::new("fwdcli-stdout");
+    // 20,000 pairs: about 1 MB of CSV, more than a pipe holds.
+    let mut csv = String::from("theta_i,phi_i,theta_o,phi_o\n");
+    for k in 0..20_000 {
+        csv.push_str(&format!("{},{},{},{}\n", k % 80, k % 360, (k / 7) % 80, (k * 3) % 360));
+    }
+    let pairs = dir.join("many.csv");
+    std::fs::write(&pairs, csv).unwrap();
+    let args = [
+        "forward",
+        "--geometry",
+        "flat:n=4",
+        "--material",
+        "lambert:albedo=0.5",
+        "--method",
+        "exact",
+        "--pairs",
+        pairs.to_str().unwrap(),
+        "-q",
+    ];
+    let mut child = Command::new(env!("CARGO_BIN_EXE_biscale"))
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Read the first line, then close the pipe.
+    let mut out = child.stdout.take().unwrap();
+    let mut first = [0u8; 64];
+    let _ = std::io::Read::read(&mut out, &mut first).unwrap();
+    drop(out);
+    let done = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&done.stderr);
+    assert!(done.status.success(), "{:?}: {stderr}", done.status);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    if let Ok(full) = std::fs::OpenOptions::new().write(true).open("/dev/full") {
+        let done = Command::new(env!("CARGO_BIN_EXE_biscale"))
+            .args(args)
+            .stdout(full)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&done.stderr);
+        assert_eq!(done.status.code(), Some(2), "{stderr}");
+        assert!(
+            stderr.contains("standard output") && !stderr.contains("panicked"),
+            "{stderr}"
+        );
+    }
 }
 
 #[test]

@@ -164,6 +164,8 @@ pub fn run(job: &DesignJob) -> Result<String> {
     };
     let look =
         Look::from_spec(&scene.target, edits, scene.colour).map_err(|e| e.within(ctx("target")))?;
+    look.check_not_black()
+        .map_err(|e| e.within(ctx("target")))?;
     let fixed = Fixed::read(
         scene.fixed_material.as_deref(),
         scene.fixed_geometry.as_deref().map(|g| {

@@ -134,6 +134,10 @@ fn cost_weight() -> f64 {
     0.001
 }
 
+/// The longest scene name: its output directory's hidden working name,
+/// `.NAME.partial-PID`, must fit the 255 bytes of a file name.
+pub const MAX_NAME: usize = 200;
+
 impl Scene {
     /// Parse and validate scene text; `ctx` names the file in errors.
     pub fn parse(text: &str, ctx: &str) -> Result<Self> {
@@ -199,6 +203,16 @@ impl Scene {
             || self.name.starts_with('.')
         {
             return Err(Error::new("name", format!("'{}': expected letters, digits, '-', '_' or '.' (it names the output directory)", self.name)));
+        }
+        // The hidden `.NAME.partial-PID` directory must fit a file name (255 bytes).
+        if self.name.len() > MAX_NAME {
+            return Err(Error::new(
+                "name",
+                format!(
+                    "{} characters: expected at most {MAX_NAME} (it names the output directory)",
+                    self.name.len()
+                ),
+            ));
         }
         for (k, v) in [
             ("tile_mm[0]", self.tile_mm[0]),
@@ -351,6 +365,15 @@ mod tests {
         .unwrap()
         .to_string();
         assert!(e.contains("tile_mm[1]"), "{e}");
+        let long = format!("name = \"{}\"", "n".repeat(MAX_NAME + 1));
+        let e = Scene::parse(
+            &DEFAULT_SCENE.replace("name = \"aniso-ward-panel\"", &long),
+            "s.toml",
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(e.contains("name") && e.contains("at most"), "{e}");
         let e = Scene::parse(
             &DEFAULT_SCENE.replace("details = 2", "details = \"two\""),
             "s.toml",

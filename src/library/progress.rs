@@ -14,6 +14,13 @@ pub struct Progress {
     pub quiet: bool,
 }
 
+/// One line on standard error. A failed write is ignored (a closed pipe, a full disk): the log
+/// is for people, and losing it must not stop the run (`eprintln!` would panic).
+pub fn line(msg: &str) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stderr().lock(), "{msg}");
+}
+
 /// Where plain lines go: standard error, or (in tests) a list.
 #[derive(Clone)]
 enum Sink {
@@ -25,7 +32,7 @@ enum Sink {
 impl Sink {
     fn line(&self, s: String) {
         match self {
-            Sink::Stderr => eprintln!("{s}"),
+            Sink::Stderr => line(&s),
             Sink::Capture(v) => {
                 if let Ok(mut v) = v.lock() {
                     v.push(s);
@@ -265,7 +272,7 @@ impl Progress {
     /// A one-line log message (suppressed when quiet).
     pub fn note(&self, msg: &str) {
         if !self.quiet {
-            eprintln!("{msg}");
+            line(msg);
         }
     }
 }

@@ -80,8 +80,25 @@ impl MerlBrdf {
                         format!("value {i} of channel {c} is {v}, expected a finite number"),
                     ));
                 }
-                ch.push(if v < 0.0 { 0.0 } else { (v * SCALE[c]) as f32 });
+                let x = if v < 0.0 { 0.0 } else { (v * SCALE[c]) as f32 };
+                if !x.is_finite() {
+                    return Err(Error::new(
+                        name,
+                        format!(
+                            "value {i} of channel {c} is {v:e}: too large for a reflectance \
+                             (expected a finite single-precision number once scaled)"
+                        ),
+                    ));
+                }
+                ch.push(x);
             }
+        }
+        if data.iter().all(|ch| ch.iter().all(|&x| x <= 0.0)) {
+            return Err(Error::new(
+                name,
+                "every value is zero or negative (MERL marks missing measurements with negative \
+                 values): no reflectance to read",
+            ));
         }
         Ok(MerlBrdf {
             path: name.to_string(),
@@ -208,5 +225,17 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("dimensions"));
+        // Every measurement missing, or a value no reflectance has: refused, naming the file.
+        let none = dir.join("none.binary");
+        MerlBrdf::write_synthetic(&none, |_, _, _, _| -1.0).unwrap();
+        let e = MerlBrdf::load(&none).unwrap_err().to_string();
+        assert!(
+            e.contains("none.binary") && e.contains("zero or negative"),
+            "{e}"
+        );
+        let huge = dir.join("huge.binary");
+        MerlBrdf::write_synthetic(&huge, |th, _, _, _| if th == 3 { 1e300 } else { 1.0 }).unwrap();
+        let e = MerlBrdf::load(&huge).unwrap_err().to_string();
+        assert!(e.contains("huge.binary") && e.contains("too large"), "{e}");
     }
 }

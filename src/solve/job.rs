@@ -169,6 +169,7 @@ pub fn run(job: &SolveJob) -> Result<String> {
         }
         Some(g) => combination_look(&job.target, g, job.edits, job.colour, &progress)?,
     };
+    look.check_not_black().map_err(|e| e.within("--target"))?;
     let lib = open_library(&job.library, &job.profile, &job.cache_dir, &progress)?;
     let (mode, result) = match (&fixed, job.veds) {
         (Fixed::Neither, Some((n, bound))) => (

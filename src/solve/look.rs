@@ -109,6 +109,27 @@ impl Look {
         )
     }
 
+    /// Refuse a black look: `fbar` zero (or not finite) at every one of the 490 default pairs
+    /// (`brightness = 0`, `lambert:albedo=0`, `ks=0`, a measured file of zeros). Its relative
+    /// error has no scale, so no answer could be ranked; better said at once than after a search.
+    pub fn check_not_black(&self) -> Result<()> {
+        let lit = crate::pairs::default_pairs(70).iter().any(|p| {
+            let d = p.dirs();
+            let v = self.fbar(d.wi, d.wo);
+            v.is_finite() && v > 0.0
+        });
+        if lit {
+            Ok(())
+        } else {
+            Err(Error::new(
+                self.name.clone(),
+                "the look is black (fbar is 0 at every one of the 490 default direction pairs): \
+                 a black target has no relative error to match; expected a look that reflects \
+                 some light",
+            ))
+        }
+    }
+
     /// The sample set stored under `key` (drawn by `make` the first time). Drawing samples
     /// evaluates the look a few tens of thousands of times (the gradient of importance
     /// sampling); the general solver asks for the same set at every iteration.
@@ -192,4 +213,20 @@ pub fn parse_colour(s: &str) -> Result<[f64; 3]> {
         ));
     }
     Ok([v[0], v[1], v[2]])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn black_looks_are_refused_naming_the_target() {
+        for spec in ["lambert:albedo=0", "ggx:alpha=0.2,ks=0"] {
+            let look = Look::from_spec(spec, Edits::default(), None).unwrap();
+            let e = look.check_not_black().unwrap_err().to_string();
+            assert!(e.contains(spec) && e.contains("black"), "{e}");
+        }
+        let look = Look::from_spec("ward:ax=0.3,ay=0.08", Edits::default(), None).unwrap();
+        assert!(look.check_not_black().is_ok());
+    }
 }
