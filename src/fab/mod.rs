@@ -134,7 +134,7 @@ pub fn check_detail(hf: &Heightfield, profile: &Profile, opts: &CheckOptions) ->
         ));
     }
     let feats = features::measure(hf, profile.max_deviation_frac);
-    let window = scale::scale_window(hf, profile, &feats, distance)?;
+    let window = scale::scale_window(hf, profile, &feats, distance, (tx, ty))?;
     let mut rej = Vec::new();
     if let Some(r) = &window.rejection {
         reject(&mut rej, "scale_window", r.clone());

@@ -10,20 +10,24 @@
 //!   goes below a patch of twice the tool (or printer XY) diameter.
 //! - **features**: the narrowest valley or ridge ([`super::features`], measured at the same
 //!   tolerance) must be at least `min_feature_mm`.
+//! - **mesh**: the tile's mesh, one vertex per sample of the surface, must have at most
+//!   [`super::mesh::MAX_MESH_SAMPLES`] vertices.
 //!
 //! Upper bounds (the detail must stay small enough):
 //! - **viewing**: one period (its longer side) must subtend at most `max_period_arcmin` at the
 //!   viewing distance `D`: `period <= D · tan(max_period_arcmin / 60 °)`. With the shipped 1
-//!   arc minute (the eye's acuity) and `D` = 2 m that is 0.58 mm.
+//!   arc minute (the eye's acuity) and `D` = 2 m that is 0.58 mm. A flat detail has no period
+//!   to see and no such bound.
 //! - **reach**: the relief must not exceed the tool's flute length (mills) or the build height
 //!   minus the base (printers), and base + relief must fit the mill's z travel.
 //!
-//! The size picked is the geometric mean of the bounds (equal ratio margin to both), or the upper
-//! bound when there is no lower bound (a flat detail). An empty interval rejects the detail with a
+//! The size picked is the geometric mean of the bounds (equal ratio margin to both), or the
+//! lower bound when there is no upper bound (a flat detail). An empty interval rejects the detail with a
 //! reason naming both binding bounds.
 
 use super::catalogue::Machine;
 use super::features::FeatureWidths;
+use super::mesh::MAX_MESH_SAMPLES;
 use super::millability::simulate;
 use super::profile::Profile;
 use crate::error::Result;
@@ -127,12 +131,14 @@ fn process_bound(hf: &Heightfield, profile: &Profile, relief_g: f64) -> Result<O
     }))
 }
 
-/// The scale window of `hf` for `profile` viewed from `viewing_distance_mm`.
+/// The scale window of `hf` for `profile` viewed from `viewing_distance_mm`, exported as a
+/// tile of `tile_mm`.
 pub fn scale_window(
     hf: &Heightfield,
     profile: &Profile,
     features: &FeatureWidths,
     viewing_distance_mm: f64,
+    tile_mm: (f64, f64),
 ) -> Result<ScaleWindow> {
     let w = hf.width() as f64;
     let (zlo, zhi) = hf.min_max();
@@ -151,17 +157,32 @@ pub fn scale_window(
             ),
         });
     }
+    // The tile's mesh has one vertex per sample of the surface (`patch / width` apart).
+    let (tx, ty) = tile_mm;
+    lower.push(Bound {
+        name: "mesh".into(),
+        patch_mm: w * (tx * ty / MAX_MESH_SAMPLES).sqrt() * (1.0 + 1e-3),
+        why: format!(
+            "the {} × {} mm tile's mesh must have at most {} million samples",
+            crate::error::show_num(tx),
+            crate::error::show_num(ty),
+            MAX_MESH_SAMPLES / 1e6
+        ),
+    });
     let mut upper = Vec::new();
     let theta = (profile.max_period_arcmin / 60.0).to_radians();
     let side = hf.width().max(hf.height()) as f64;
-    upper.push(Bound {
-        name: "viewing".into(),
-        patch_mm: viewing_distance_mm * theta.tan() * w / side,
-        why: format!(
-            "one period must subtend at most {} arc minute(s) at {viewing_distance_mm} mm",
-            profile.max_period_arcmin
-        ),
-    });
+    // A flat detail has no period to see.
+    if relief_g > 0.0 {
+        upper.push(Bound {
+            name: "viewing".into(),
+            patch_mm: viewing_distance_mm * theta.tan() * w / side,
+            why: format!(
+                "one period must subtend at most {} arc minute(s) at {viewing_distance_mm} mm",
+                profile.max_period_arcmin
+            ),
+        });
+    }
     if relief_g > 0.0 {
         let reach = match (&profile.machine, &profile.tool) {
             (Machine::Mill(_), Some(t)) => t.flute_length_mm,
