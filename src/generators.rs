@@ -552,7 +552,10 @@ impl Generator {
             "bumps" | "dimples" if self.num("radius") > n => {
                 return cross(
                     "radius",
-                    format!("radius {} must be at most n = {n}", self.num("radius")),
+                    format!(
+                        "radius {} must be at most n = {n}",
+                        show_num(self.num("radius"))
+                    ),
                 );
             }
             "fbm" if self.num("cells") > n / 2.0 => {
@@ -581,7 +584,11 @@ impl Generator {
                 if self.num("cutoff") > n / 2.0 {
                     return cross(
                         "cutoff",
-                        format!("cutoff {} exceeds n/2 = {}", self.num("cutoff"), n / 2.0),
+                        format!(
+                            "cutoff {} exceeds n/2 = {}",
+                            show_num(self.num("cutoff")),
+                            n / 2.0
+                        ),
                     );
                 }
                 if 4.0 * n > 4096.0 {

@@ -47,14 +47,9 @@ fn plain(msg: &str) -> String {
             "expected u32",
             "expected a whole number from 0 to 4294967295",
         )
-        .replace(
-            "expected u64",
-            "expected a whole number from 0 to 18446744073709551615",
-        )
-        .replace(
-            "expected usize",
-            "expected a whole number from 0 to 18446744073709551615",
-        )
+        // The key's own range, where it has one, is checked once the type is right.
+        .replace("expected u64", "expected a whole number (0 or more)")
+        .replace("expected usize", "expected a whole number (0 or more)")
 }
 
 fn map_error(path: &Path, src: &str, msg: &str, span: Option<std::ops::Range<usize>>) -> Error {

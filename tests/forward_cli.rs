@@ -333,7 +333,13 @@ fn results_to_a_closed_or_full_standard_output() {
     // 20,000 pairs: about 1 MB of CSV, more than a pipe holds.
     let mut csv = String::from("theta_i,phi_i,theta_o,phi_o\n");
     for k in 0..20_000 {
-        csv.push_str(&format!("{},{},{},{}\n", k % 80, k % 360, (k / 7) % 80, (k * 3) % 360));
+        csv.push_str(&format!(
+            "{},{},{},{}\n",
+            k % 80,
+            k % 360,
+            (k / 7) % 80,
+            (k * 3) % 360
+        ));
     }
     let pairs = dir.join("many.csv");
     std::fs::write(&pairs, csv).unwrap();

@@ -181,9 +181,10 @@ impl Material {
     }
 }
 
-/// Shortest decimal that round-trips, for canonical specs.
+/// Shortest decimal that round-trips, for canonical specs: in exponent form beyond 1e15 and
+/// below 1e-9 ([`crate::error::show_num`]), where the plain form runs to hundreds of digits.
 pub(crate) fn fmt_num(v: f64) -> String {
-    format!("{v}")
+    crate::error::show_num(v)
 }
 
 /// `(n·wi, n·wo, n·h, wi·h)` for unit inputs, with `h` the normalised half vector; `None` when

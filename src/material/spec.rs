@@ -178,10 +178,17 @@ fn parse_rgb(s: &str) -> Result<[f64; 3]> {
             return Err(bad());
         }
     }
-    let mean = (c[0] + c[1] + c[2]) / 3.0;
-    if mean <= 0.0 {
+    let top = c[0].max(c[1]).max(c[2]);
+    if top <= 0.0 {
         return Err(bad());
     }
+    // Channels so small that their mean underflows (5e-324) are taken over the largest first.
+    let c = if (c[0] + c[1] + c[2]) / 3.0 > 0.0 {
+        c
+    } else {
+        c.map(|x| x / top)
+    };
+    let mean = (c[0] + c[1] + c[2]) / 3.0;
     Ok([c[0] / mean, c[1] / mean, c[2] / mean])
 }
 
