@@ -326,8 +326,11 @@ fn random_material(r: &mut Rng) -> String {
 pub struct AccuracyOptions {
     /// Draw sharp materials ([`random_sharp_material`]) instead of the usual ones.
     pub sharp: bool,
-    /// View rays per cell side of the exact reference (2 is `forward`'s default).
+    /// View rays per cell side of the exact reference (2 is where `forward` starts).
     pub exact_samples: usize,
+    /// Instead, the reference's rays chosen for this estimated error
+    /// ([`crate::exact::fbar_to_tolerance`], as `forward` does).
+    pub exact_tol: Option<f64>,
 }
 
 impl Default for AccuracyOptions {
@@ -335,6 +338,7 @@ impl Default for AccuracyOptions {
         AccuracyOptions {
             sharp: false,
             exact_samples: 2,
+            exact_tol: None,
         }
     }
 }
@@ -367,7 +371,20 @@ pub fn accuracy(
         };
         let hf = geometry(&gs)?;
         let mat = parse_material(&ms)?;
-        let exact = ExactEvaluator::new(&hf, opt.exact_samples).fbar(&mat, &dirs);
+        // The reference, with its own estimated error (a share of the fast method's error
+        // below is the reference's).
+        let (exact, samples, noise) = match opt.exact_tol {
+            Some(tol) => {
+                let c = crate::exact::fbar_to_tolerance(&hf, &[&mat], &dirs, tol);
+                (c.values, c.samples, c.noise)
+            }
+            None => {
+                let n = opt.exact_samples;
+                let e = ExactEvaluator::new(&hf, n).fbar_many_estimated(&[&mat], &dirs);
+                (e.values, n, e.noise)
+            }
+        };
+        let exact = exact.into_iter().next().unwrap_or_default();
         let t = Instant::now();
         let geo = CompactBvndf::build(&hf, cfg);
         build_s += t.elapsed().as_secs_f64();
@@ -378,14 +395,24 @@ pub fn accuracy(
         errs.push(e);
         errs85.push(e85);
         rows.push_str(&format!(
-            "| {c} | `{gs}` | `{ms}` | {:.2} % | {:.2} % |\n",
+            "| {c} | `{gs}` | `{ms}` | {:.2} % | {:.2} % | {samples}×{samples}, {:.2} % |\n",
             100.0 * e,
-            100.0 * e85
+            100.0 * e85,
+            100.0 * noise
         ));
         bar.inc(1);
     }
     bar.finish();
-    let s = opt.exact_samples;
+    let reference = match opt.exact_tol {
+        Some(t) => format!(
+            "view rays per cell from both ends chosen for an estimated error within {:.2} %",
+            100.0 * t
+        ),
+        None => format!(
+            "{0}×{0} view rays per cell from both ends",
+            opt.exact_samples
+        ),
+    };
     let sharp = if opt.sharp {
         "; sharp materials: glossy widths 0.002–0.06 rad"
     } else {
@@ -404,12 +431,12 @@ pub fn accuracy(
         )
     };
     Ok(format!(
-        "Fast vs exact evaluator (exact: {s}×{s} view rays per cell from both ends{sharp}): relative RMS error over \
+        "Fast vs exact evaluator (exact: {reference}{sharp}): relative RMS error over \
          the 490 default pairs, {cases} random cases, seed {seed}; compact BVNDF: {} × {} grid, {} \
          surface points for the pairs (+ {} seen rays per direction), {} clusters, {} sub-lobes, {}; its builds took {build_s:.1} s in all \
          ({:.3} s per geometry)\n\n\
          | pairs | median | 90th percentile | max | cases ≤ 3 % |\n|---|---|---|---|---|\n{}{}\n\
-         | case | geometry | material | all pairs | theta ≤ 85° |\n|---|---|---|---|---|\n{rows}",
+         | case | geometry | material | all pairs | theta ≤ 85° | exact: rays per cell, its estimated error |\n|---|---|---|---|---|---|\n{rows}",
         cfg.n_theta,
         cfg.n_phi,
         cfg.points,

@@ -503,6 +503,10 @@ enum BenchCmd {
         /// this grows; the cost grows with its square).
         #[arg(long, default_value_t = 2, value_parser = in_range::<usize>(1, 64))]
         exact_samples: usize,
+        /// Instead, the reference's rays chosen as `forward` chooses them, for this estimated
+        /// relative RMS error (e.g. 0.005).
+        #[arg(long, conflicts_with = "exact_samples", value_parser = in_range::<f64>(1e-4, 0.5))]
+        exact_tol: Option<f64>,
         /// The compact BVNDF's build.
         #[command(flatten)]
         build: BvndfArgs,
@@ -851,12 +855,14 @@ fn main() -> ExitCode {
                 seed,
                 sharp,
                 exact_samples,
+                exact_tol,
                 build,
             } => {
                 let cfg = build.config();
                 let opt = biscale::bench::AccuracyOptions {
                     sharp,
                     exact_samples,
+                    exact_tol,
                 };
                 biscale::bench::accuracy(cases.max(1), seed, &cfg, &opt, &Progress { quiet })
                     .and_then(|t| emit(&t))
