@@ -136,16 +136,11 @@ pub fn exact(
                 100.0 * relative_rms_85(&pairs, v, &truth)
             )
         };
-        let passes: Vec<String> = auto
-            .passes
-            .iter()
-            .map(|(n, e)| format!("{n}×{n}: {:.2} %", 100.0 * e))
-            .collect();
         rows.push_str(&format!(
             "| `{gs}` | `{ms}` | {:.2} % | {} | {fixed_s:.2} s | {} | {} | {auto_s:.2} s |\n",
             100.0 * fixed.noise,
             errors(&fixed.values[0]),
-            passes.join(" → "),
+            auto.passes_text(),
             errors(&auto.values[0]),
         ));
         bar.inc(1);

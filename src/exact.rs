@@ -64,6 +64,18 @@ pub struct Converged {
     pub passes: Vec<(usize, f64)>,
 }
 
+impl Converged {
+    /// The passes as `2×2: 3.68 % → 8×8: 1.42 %` (rays per cell, estimated error).
+    pub fn passes_text(&self) -> String {
+        let v: Vec<String> = self
+            .passes
+            .iter()
+            .map(|(n, e)| format!("{n}×{n}: {:.2} %", 100.0 * e))
+            .collect();
+        v.join(" → ")
+    }
+}
+
 /// The exact method with as many rays as its estimated error needs: a pass at
 /// [`AUTO_SAMPLES`]`.0` rays per cell side, then, while the estimate ([`Estimated::noise`]) is
 /// over `tol`, one more with `s` raised to where the estimate would meet `tol` if it falls as

@@ -179,11 +179,6 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
                 }
                 None => {
                     let c = crate::exact::fbar_to_tolerance(&hf, &[&mat], &dirs, job.exact_tol);
-                    let passes: Vec<String> = c
-                        .passes
-                        .iter()
-                        .map(|(n, e)| format!("{n}×{n}: {:.2} %", 100.0 * e))
-                        .collect();
                     let over = if c.noise > job.exact_tol {
                         "; still over the tolerance at the most rays the automatic choice \
                          casts: --exact-samples up to 16 goes further"
@@ -191,15 +186,13 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
                     } else {
                         String::new()
                     };
-                    (
-                        c.values,
-                        format!(
-                            "view rays per cell from each end and estimated error {} \
-                             (tolerance {:.2} %, --exact-tol){over}",
-                            passes.join(" -> "),
-                            100.0 * job.exact_tol
-                        ),
-                    )
+                    let how = format!(
+                        "view rays per cell from each end and estimated error {} \
+                         (tolerance {:.2} %, --exact-tol){over}",
+                        c.passes_text(),
+                        100.0 * job.exact_tol
+                    );
+                    (c.values, how)
                 }
             };
             log(
