@@ -178,7 +178,27 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
                     )
                 }
                 None => {
-                    let c = crate::exact::fbar_to_tolerance(&hf, &[&mat], &dirs, job.exact_tol);
+                    let c = crate::exact::fbar_to_tolerance(
+                        &hf,
+                        &[&mat],
+                        &dirs,
+                        job.exact_tol,
+                        |n, e, next| {
+                            if let Some(m) = next {
+                                log(
+                                    job.quiet,
+                                    format!(
+                                        "exact: {n}×{n} rays per cell: estimated error {:.2} %, \
+                                         over the {:.2} % tolerance (--exact-tol); again at \
+                                         {m}×{m}, about {:.0}× the rays",
+                                        100.0 * e,
+                                        100.0 * job.exact_tol,
+                                        (m * m) as f64 / (n * n) as f64
+                                    ),
+                                );
+                            }
+                        },
+                    );
                     let over = if c.noise > job.exact_tol {
                         "; still over the tolerance at the most rays the automatic choice \
                          casts: --exact-samples up to 16 goes further"
