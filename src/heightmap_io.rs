@@ -64,7 +64,8 @@ fn read_png_grey(path: &Path) -> Result<(usize, usize, Vec<f64>)> {
             return Err(Error::new(
                 &ctx,
                 format!(
-                    "is a {:?} image; a heightmap must be an 8- or 16-bit greyscale PNG (convert it to grey, \
+                    "is a colour image ({:?} once decoded; a palette PNG decodes to colour); a heightmap \
+                     must be an 8- or 16-bit greyscale PNG (convert it to grey, \
                      or use the texture recipe: --geometry texture:file=...)",
                     other.color()
                 ),
