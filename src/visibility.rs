@@ -416,66 +416,68 @@ impl<'a> Visibility<'a> {
             }
         }
         loop {
-            if self.bsize > 1 {
-                let b = walk.block(self.bshift);
-                if b != cur_block {
-                    cur_block = b;
-                    let s_out = walk.block_exit(self.bsize, b);
-                    // The ray is lowest at the block's exit; skip if it stays above the block.
-                    // (Not during the first period of a repeating line, whose exact maximum the
-                    // jump below needs.)
-                    if walk.s_in > 0.0
-                        && (period.is_none() || jumped)
-                        && self.block_max(b) < zs - m * s_out
-                    {
-                        walk.restart(s_out);
-                        prev_s = s_out;
-                        prev_g = g_at(
-                            s_out,
-                            self.hf.surface_height(qx - s_out * dx, qy - s_out * dy),
-                        );
-                        continue;
-                    }
-                }
-            }
-            let c = self.corners(&walk);
-            let s_exit = walk.s_exit();
-            if let Some(sd) = walk.diagonal_crossing() {
-                let hd = walk.height_at(sd, &c);
-                line_max = line_max.max(hd);
-                let g = g_at(sd, hd);
-                if g >= 0.0 {
-                    return hit(&walk, prev_s, prev_g, sd, g);
-                }
-                prev_s = sd;
-                prev_g = g;
-            }
-            let he = walk.height_at(s_exit, &c);
-            let g = g_at(s_exit, he);
-            if g >= 0.0 {
-                return hit(&walk, prev_s, prev_g, s_exit, g);
-            }
-            prev_s = s_exit;
-            prev_g = g;
-            if let Some(l) = period {
-                if !jumped {
-                    line_max = line_max.max(he);
-                    if s_exit > l {
-                        jumped = true;
-                        // Whole periods during which the ray stays above the line's maximum.
-                        let k = (((zs - line_max) / m - s_exit) / l).floor();
-                        if k >= 1.0 {
-                            let s_j = s_exit + k * l;
-                            walk.restart(s_j);
-                            prev_s = s_j;
-                            prev_g =
-                                g_at(s_j, self.hf.surface_height(qx - s_j * dx, qy - s_j * dy));
-                            continue;
+            // Where this step leaves the ray, and whether the walk restarts there (a skipped
+            // block) or steps on (a walked cell).
+            let (s_now, skipped) = 'step: {
+                if self.bsize > 1 {
+                    let b = walk.block(self.bshift);
+                    if b != cur_block {
+                        cur_block = b;
+                        let s_out = walk.block_exit(self.bsize, b);
+                        // The ray is lowest at the block's exit; skip if it stays above the
+                        // block. (During the first period of a repeating line, whose exact
+                        // maximum the jump below needs, only a block no higher than the line's
+                        // maximum so far: skipping it cannot change that maximum.)
+                        let bmax = self.block_max(b);
+                        if walk.s_in > 0.0
+                            && (period.is_none() || jumped || bmax <= line_max)
+                            && bmax < zs - m * s_out
+                        {
+                            break 'step (s_out, true);
                         }
                     }
                 }
+                let c = self.corners(&walk);
+                let s_exit = walk.s_exit();
+                if let Some(sd) = walk.diagonal_crossing() {
+                    let hd = walk.height_at(sd, &c);
+                    line_max = line_max.max(hd);
+                    let g = g_at(sd, hd);
+                    if g >= 0.0 {
+                        return hit(&walk, prev_s, prev_g, sd, g);
+                    }
+                    prev_s = sd;
+                    prev_g = g;
+                }
+                let he = walk.height_at(s_exit, &c);
+                let g = g_at(s_exit, he);
+                if g >= 0.0 {
+                    return hit(&walk, prev_s, prev_g, s_exit, g);
+                }
+                prev_s = s_exit;
+                prev_g = g;
+                line_max = line_max.max(he);
+                (s_exit, false)
+            };
+            let mut restart = skipped.then_some(s_now);
+            if let Some(l) = period {
+                if !jumped && s_now > l {
+                    jumped = true;
+                    // Whole periods during which the ray stays above the line's maximum.
+                    let k = (((zs - line_max) / m - s_now) / l).floor();
+                    if k >= 1.0 {
+                        restart = Some(s_now + k * l);
+                    }
+                }
             }
-            walk.step();
+            match restart {
+                Some(s) => {
+                    walk.restart(s);
+                    prev_s = s;
+                    prev_g = g_at(s, self.hf.surface_height(qx - s * dx, qy - s * dy));
+                }
+                None => walk.step(),
+            }
         }
     }
 
