@@ -143,8 +143,12 @@ impl<'a> Visibility<'a> {
         let mut rise = [f64::NEG_INFINITY; 8];
         for y in 0..h {
             for x in 0..w {
-                let (z00, z10, z01, z11) =
-                    (hf.at(x, y), hf.at(x + 1, y), hf.at(x, y + 1), hf.at(x + 1, y + 1));
+                let (z00, z10, z01, z11) = (
+                    hf.at(x, y),
+                    hf.at(x + 1, y),
+                    hf.at(x, y + 1),
+                    hf.at(x + 1, y + 1),
+                );
                 let m = z00.max(z10).max(z01).max(z11);
                 let b = &mut bmax[((y / bsize) * bw + x / bsize) as usize];
                 *b = b.max(m);
@@ -575,8 +579,7 @@ impl<'a> Visibility<'a> {
             // pz)`, short of `m · s` plus the height tolerance an occluder must clear). Near
             // the zenith, on gentle reliefs, no point is shadowed and none is traced.
             Some(al)
-                if al.rise <= al.m
-                    && pz >= self.hf.surface_height(px, py) - 0.5 * self.htol =>
+                if al.rise <= al.m && pz >= self.hf.surface_height(px, py) - 0.5 * self.htol =>
             {
                 true
             }
@@ -1554,7 +1557,10 @@ mod tests {
                     .map(|f| -(f.n.x * dx + f.n.y * dy) / f.n.z)
                     .fold(f64::NEG_INFINITY, f64::max);
                 let bound = v.slope_bound(dx, dy);
-                assert!(bound >= steepest - 1e-12, "{spec} at {phi}°: {bound} < {steepest}");
+                assert!(
+                    bound >= steepest - 1e-12,
+                    "{spec} at {phi}°: {bound} < {steepest}"
+                );
                 if i % 4 == 0 {
                     assert!((bound - steepest).abs() <= 1e-12 * (1.0 + steepest.abs()));
                 }
