@@ -111,13 +111,46 @@ pub fn temp_path(path: &Path) -> PathBuf {
     path.with_file_name(format!(".{name}.tmp-{}-{n}", process_tag()))
 }
 
-/// Create a new temporary file next to `path` (never one that already exists).
-pub fn create_temp(path: &Path) -> Result<(PathBuf, File)> {
+/// A temporary file's name, registered for removal if the process is interrupted
+/// ([`crate::interrupt`]) for as long as this lives. Dropping it neither removes nor renames the
+/// file: the writer does one or the other first.
+#[derive(Debug)]
+pub struct TempPath {
+    path: PathBuf,
+    _registered: crate::interrupt::Registered,
+}
+
+impl std::ops::Deref for TempPath {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.path
+    }
+}
+
+impl AsRef<Path> for TempPath {
+    fn as_ref(&self) -> &Path {
+        &self.path
+    }
+}
+
+/// Create a new temporary file next to `path` (never one that already exists), registered for
+/// removal if the process is interrupted before it is renamed or removed.
+pub fn create_temp(path: &Path) -> Result<(TempPath, File)> {
     let mut last = None;
     for _ in 0..8 {
         let tmp = temp_path(path);
         match File::create_new(&tmp) {
-            Ok(f) => return Ok((tmp, f)),
+            // Registered once it is ours: a name another process holds is never removed.
+            Ok(f) => {
+                let registered = crate::interrupt::register(&tmp);
+                return Ok((
+                    TempPath {
+                        path: tmp,
+                        _registered: registered,
+                    },
+                    f,
+                ));
+            }
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => last = Some((tmp, e)),
             Err(e) => {
                 return Err(Error::new(

@@ -54,6 +54,7 @@ pub mod validate;
 // Files and commands.
 pub mod atomic_write;
 pub mod design;
+pub mod interrupt;
 pub mod render;
 // Fabrication: constraint profiles, millability, cost, export.
 pub mod bench;

@@ -547,6 +547,8 @@ fn emit(text: &str) -> biscale::Result<()> {
 }
 
 fn main() -> ExitCode {
+    // First, before any thread starts: an interrupted run removes its temporary files.
+    biscale::interrupt::install();
     if let Err(e) = biscale::cpu::check() {
         biscale::library::progress::line(&format!("biscale: error: {e}"));
         return ExitCode::from(2);

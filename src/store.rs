@@ -139,7 +139,7 @@ pub fn f32_bytes(v: &[f32]) -> &[u8] {
 /// then renamed into place. Dropped without [`ArrayWriter::finish`], it leaves nothing behind.
 pub struct ArrayWriter {
     path: PathBuf,
-    tmp: PathBuf,
+    tmp: crate::atomic_write::TempPath,
     file: Option<std::io::BufWriter<File>>,
     header: ArrayHeader,
     hasher: Xxh3,

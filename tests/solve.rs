@@ -1154,3 +1154,64 @@ fn a_combination_target_is_forwards_look_and_solves_back_to_its_geometry() {
     let e = combination_look(mat, "nosuch:n=32", Edits::default(), None, &quiet).unwrap_err();
     assert!(e.to_string().contains("--target-geometry"), "{e}");
 }
+
+/// Ctrl-C during a design run's export: the run ends by the signal (a shell sees status 130),
+/// and its temporary output directory and files are gone; nothing is left in the outputs.
+#[cfg(unix)]
+#[test]
+fn an_interrupted_design_leaves_nothing_behind() {
+    use std::os::unix::process::ExitStatusExt;
+    let lib = tiny_library();
+    let out = TestDir::new("design-interrupted");
+    let scene = out.join("scene.toml");
+    // A large tile, so that its meshes take most of the run and the signal comes during them.
+    std::fs::write(
+        &scene,
+        "name = \"s1\"\ntarget = \"ward:alpha=0.2\"\nfixed_material = \"ggx:alpha=0.2,f0=0.9\"\n\
+         profile = \"cnc-ball1-aluminium\"\ntile_mm = [150.0, 150.0]\n\
+         viewing_distance_mm = 100000.0\ndetails = 3\ncandidates = 4\npsi = 1\n\
+         library_profile = \"tiny\"\n",
+    )
+    .unwrap();
+    let outputs = out.join("outputs");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_biscale"))
+        .args(["design", "--quiet", "--library"])
+        .arg(&lib)
+        .arg("--outputs")
+        .arg(&outputs)
+        .arg(&scene)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let partial = || {
+        std::fs::read_dir(&outputs)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .any(|e| e.file_name().to_string_lossy().starts_with(".s1.partial-"))
+    };
+    let t0 = std::time::Instant::now();
+    while !partial() {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the run ended before its output directory appeared"
+        );
+        assert!(
+            t0.elapsed().as_secs() < 300,
+            "no output directory after 300 s"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    // SAFETY: signalling our own child process by its id.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+    let done = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&done.stderr);
+    assert_eq!(done.status.signal(), Some(libc::SIGINT), "{stderr}");
+    assert!(stderr.contains("interrupted: removed"), "{stderr}");
+    let left: Vec<_> = std::fs::read_dir(&outputs)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name())
+        .collect();
+    assert!(left.is_empty(), "left in the outputs: {left:?}");
+}

@@ -464,6 +464,9 @@ pub fn run(job: &DesignJob) -> Result<String> {
         .join(format!(".{}.partial-{}", scene.name, std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);
     std::fs::create_dir_all(&tmp).map_err(|e| Error::io(&tmp, "create the output directory", e))?;
+    // Removed if the run is interrupted before the output is complete; not while it is being
+    // moved into place (`install`), where the previous output is briefly set aside.
+    let registered = crate::interrupt::register(&tmp);
     let outcome = (|| -> Result<Vec<DetailSummary>> {
         let mut details = Vec::new();
         let n_export = scene.details.min(ranked.len());
@@ -613,6 +616,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
             .map_err(|e| Error::new("summary.json", e.to_string()))?;
         crate::atomic_write::write_bytes(&tmp.join("summary.json"), json.as_bytes())?;
         report::write_markdown(&tmp, &summary)?;
+        drop(registered);
         install(&tmp, &out_dir)
     };
     if let Err(e) = finish() {
