@@ -1254,6 +1254,23 @@ mod tests {
     use super::*;
     use crate::frame::dir_from_deg;
 
+    /// Every kind of relief the libraries hold, at sizes the tests trace quickly.
+    const RELIEFS: [&str; 6] = [
+        "vgroove:n=32,period=16,depth=8",
+        "bumps:n=64,count=5,radius=9,height=4,seed=2",
+        "bricks:n=64,length=32,height=16,mortar=3,depth=4",
+        "fbm:n=64,cells=4,octaves=5,persistence=0.6,lacunarity=2,amplitude=3,seed=5",
+        "weave:n=64,period=16,height=2",
+        "pyramids:n=64,period=16,height=6",
+    ];
+
+    fn relief(spec: &str) -> Heightfield {
+        crate::generators::parse_generator(spec)
+            .unwrap()
+            .build()
+            .unwrap()
+    }
+
     fn vgroove(n: usize, depth: f64) -> Heightfield {
         // one symmetric V per period along x: z = depth * |x - n/2| / (n/2)
         let mut z = vec![0.0; n * n];
@@ -1398,10 +1415,7 @@ mod tests {
     fn axis_azimuths_with_rounding_noise_end_and_match_the_exact_axis() {
         // (cos 270°, sin 270°) = (-1.8e-16, -1): from a vertex, a block skip used to restart the
         // walk in the cell it had just left, for ever.
-        let hf = crate::generators::parse_generator("bumps:n=64,count=4,radius=8,height=6,seed=3")
-            .unwrap()
-            .build()
-            .unwrap();
+        let hf = relief("bumps:n=64,count=4,radius=8,height=6,seed=3");
         let v = Visibility::new(&hf);
         for deg in [90.0f64, 180.0, 270.0] {
             let (dx, dy) = (deg.to_radians().cos(), deg.to_radians().sin());
@@ -1440,10 +1454,7 @@ mod tests {
             "vgroove:n=32,period=16,depth=3000",
             "bumps:n=32,count=3,radius=5,height=800,seed=2",
         ] {
-            let hf = crate::generators::parse_generator(spec)
-                .unwrap()
-                .build()
-                .unwrap();
+            let hf = relief(spec);
             let v = Visibility::new(&hf);
             let (mut rays, mut edge) = (0, 0);
             for i in 0..40 {
@@ -1530,19 +1541,9 @@ mod tests {
         // the early answer (lit) is the traced one, for points on the surface and above it.
         let mut r = crate::rng::Rng::new(29);
         let (mut early, mut checked) = (0, 0);
-        for spec in [
-            "vgroove:n=32,period=16,depth=8",
-            "bumps:n=64,count=5,radius=9,height=4,seed=2",
-            "bricks:n=64,length=32,height=16,mortar=3,depth=4",
-            "fbm:n=64,cells=4,octaves=5,persistence=0.6,lacunarity=2,amplitude=3,seed=5",
-            "weave:n=64,period=16,height=2",
-            "sine:n=48,period=12,amplitude=1",
-            "flat:n=16",
-        ] {
-            let hf = crate::generators::parse_generator(spec)
-                .unwrap()
-                .build()
-                .unwrap();
+        let gentle = ["sine:n=48,period=12,amplitude=1", "flat:n=16"];
+        for spec in RELIEFS.into_iter().chain(gentle) {
+            let hf = relief(spec);
             let v = Visibility::new(&hf);
             let facets = hf.facets();
             for i in 0..48 {
@@ -1595,18 +1596,8 @@ mod tests {
         // edge may be given to either facet).
         let mut r = crate::rng::Rng::new(17);
         let (mut hits, mut shadows, mut short_hits) = (0, 0, 0);
-        for spec in [
-            "vgroove:n=32,period=16,depth=8",
-            "bumps:n=64,count=5,radius=9,height=4,seed=2",
-            "bricks:n=64,length=32,height=16,mortar=3,depth=4",
-            "fbm:n=64,cells=4,octaves=5,persistence=0.6,lacunarity=2,amplitude=3,seed=5",
-            "weave:n=64,period=16,height=2",
-            "pyramids:n=64,period=16,height=6",
-        ] {
-            let hf = crate::generators::parse_generator(spec)
-                .unwrap()
-                .build()
-                .unwrap();
+        for spec in RELIEFS {
+            let hf = relief(spec);
             let v = Visibility::new(&hf);
             let n = hf.width() as f64;
             for i in 0..1500 {
