@@ -453,6 +453,14 @@ impl<'a> Visibility<'a> {
         if prev_g >= 0.0 {
             return hit(&walk, 0.0, prev_g, 0.0, prev_g);
         }
+        // The ray's height over the surface at a restart, where it was left to be found.
+        let prev_g_at = |s: f64, g: f64| {
+            if g.is_nan() {
+                g_at(s, self.hf.surface_height(qx - s * dx, qy - s * dy))
+            } else {
+                g
+            }
+        };
         if short {
             if let Some(((s0, g0), (s1, g1))) = self.first_hit_short(qx, qy, prev_g, &al.back, m) {
                 // The facet is the one under the segment between the two breakpoints.
@@ -490,7 +498,8 @@ impl<'a> Visibility<'a> {
                     line_max = line_max.max(hd);
                     let g = g_at(sd, hd);
                     if g >= 0.0 {
-                        return hit(&walk, prev_s, prev_g, sd, g);
+                        let g0 = prev_g_at(prev_s, prev_g);
+                        return hit(&walk, prev_s, g0, sd, g);
                     }
                     prev_s = sd;
                     prev_g = g;
@@ -498,7 +507,8 @@ impl<'a> Visibility<'a> {
                 let he = walk.height_at(s_exit, &c);
                 let g = g_at(s_exit, he);
                 if g >= 0.0 {
-                    return hit(&walk, prev_s, prev_g, s_exit, g);
+                    let g0 = prev_g_at(prev_s, prev_g);
+                    return hit(&walk, prev_s, g0, s_exit, g);
                 }
                 prev_s = s_exit;
                 prev_g = g;
@@ -520,7 +530,9 @@ impl<'a> Visibility<'a> {
                 Some(s) => {
                     walk.restart(s);
                     prev_s = s;
-                    prev_g = g_at(s, self.hf.surface_height(qx - s * dx, qy - s * dy));
+                    // Found only if the next breakpoint is the hit (most restarts are followed
+                    // by another skip).
+                    prev_g = f64::NAN;
                 }
                 None => walk.step(),
             }
