@@ -6,6 +6,9 @@
 // `!(x > 0.0)` and the like are deliberate: they are true for NaN, which every input check and
 // range guard must reject; `partial_cmp` would hide that.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
+// The module docs explain the code by naming private helpers; read them with
+// `cargo doc --document-private-items`, where those links resolve.
+#![allow(rustdoc::private_intra_doc_links)]
 
 pub mod cpu;
 pub mod error;
