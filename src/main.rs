@@ -547,12 +547,13 @@ fn emit(text: &str) -> biscale::Result<()> {
 }
 
 fn main() -> ExitCode {
-    // First, before any thread starts: an interrupted run removes its temporary files.
-    biscale::interrupt::install();
     if let Err(e) = biscale::cpu::check() {
         biscale::library::progress::line(&format!("biscale: error: {e}"));
         return ExitCode::from(2);
     }
+    // Before any other thread starts (the CPU check first: nothing before it may use the
+    // instructions it checks for): an interrupted run removes its temporary files.
+    biscale::interrupt::install();
     let cli = Cli::parse();
     let result = match cli.cmd {
         Cmd::Design {
