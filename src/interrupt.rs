@@ -73,8 +73,8 @@ const SIGNALS: [libc::c_int; 3] = [libc::SIGINT, libc::SIGTERM, libc::SIGHUP];
 /// Block SIGINT, SIGTERM and SIGHUP in this thread (and so in every thread started after this
 /// call) and start the thread that waits for them, removes the registered paths, and ends the
 /// process by the signal it received (a shell then reports it as interrupted, status 130 for
-/// Ctrl-C). Call once, in `main`, before any other thread starts. If the thread cannot be started, the signals are
-/// unblocked again and keep their default action.
+/// Ctrl-C). Call once, in `main`, before any other thread starts. If the thread cannot be
+/// started, the signals are unblocked again and keep their default action.
 #[cfg(unix)]
 pub fn install() {
     // SAFETY: `sigset_t` is plain data, initialised by `sigemptyset` before any other use; the
