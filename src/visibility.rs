@@ -493,26 +493,21 @@ impl<'a> Visibility<'a> {
                 }
                 let c = self.corners(&walk);
                 let s_exit = walk.s_exit();
-                if let Some(sd) = walk.diagonal_crossing() {
-                    let hd = walk.height_at(sd, &c);
-                    line_max = line_max.max(hd);
-                    let g = g_at(sd, hd);
+                // The cell's breakpoints in order: its diagonal (if the line crosses it), its exit.
+                for s in [walk.diagonal_crossing(), Some(s_exit)]
+                    .into_iter()
+                    .flatten()
+                {
+                    let h = walk.height_at(s, &c);
+                    line_max = line_max.max(h);
+                    let g = g_at(s, h);
                     if g >= 0.0 {
                         let g0 = prev_g_at(prev_s, prev_g);
-                        return hit(&walk, prev_s, g0, sd, g);
+                        return hit(&walk, prev_s, g0, s, g);
                     }
-                    prev_s = sd;
+                    prev_s = s;
                     prev_g = g;
                 }
-                let he = walk.height_at(s_exit, &c);
-                let g = g_at(s_exit, he);
-                if g >= 0.0 {
-                    let g0 = prev_g_at(prev_s, prev_g);
-                    return hit(&walk, prev_s, g0, s_exit, g);
-                }
-                prev_s = s_exit;
-                prev_g = g;
-                line_max = line_max.max(he);
                 (s_exit, false)
             };
             let mut restart = skipped.then_some(s_now);
