@@ -4,6 +4,7 @@ use biscale::bvndf::BvndfConfig;
 use biscale::forward::{ForwardJob, Method};
 use biscale::library::progress::Progress;
 use biscale::material::MATERIAL_GRAMMAR;
+use biscale::solve::Final;
 use clap::{Parser, Subcommand, ValueEnum};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -283,7 +284,9 @@ enum Cmd {
         /// solver widens one last geometry solve, with the best material found
         #[arg(long, default_value_t = biscale::solve::geometry::WIDEN)]
         widen: usize,
-        #[arg(long, default_value_t = 3, value_parser = in_range::<usize>(1, 1000))]
+        /// Candidates each solver returns: the best K by library data, which stage 3
+        /// (--final-eval) re-evaluates.
+        #[arg(long, default_value_t = 5, value_parser = in_range::<usize>(1, 1000))]
         k: usize,
         /// General solver: starts (plus three from the first start's material sharpened, lobe
         /// widths x 0.7, x 0.4 and x 0.25, each run only while nothing found is within 7 %, or
@@ -322,6 +325,13 @@ enum Cmd {
         /// targets from the full forward model, answers verified with it. Needs --psi 1.
         #[arg(long)]
         library_targets: bool,
+        /// Stage 3 of every solver, timed: `fast` and `exact` re-evaluate the best K (--k) by
+        /// library data with the fast forward model (the targets' model) or the exact evaluator
+        /// and answer the best of them, as `biscale solve` does; `library` answers the best by
+        /// library data. [default: fast; library with --library-targets, the only one allowed
+        /// there]
+        #[arg(long, value_enum)]
+        final_eval: Option<FinalArg>,
         #[arg(long, short = 'q')]
         quiet: bool,
     },
@@ -362,6 +372,16 @@ enum FinalArg {
     Exact,
     Fast,
     Library,
+}
+
+impl From<FinalArg> for Final {
+    fn from(f: FinalArg) -> Final {
+        match f {
+            FinalArg::Exact => Final::Exact,
+            FinalArg::Fast => Final::Fast,
+            FinalArg::Library => Final::Library,
+        }
+    }
 }
 
 #[derive(Subcommand)]
@@ -642,7 +662,7 @@ fn main() -> ExitCode {
             .transpose()
             .and_then(|c| biscale::solve::look::parse_blur(&blur).map(|b| (c, b)))
             .and_then(|(colour, blur)| {
-                use biscale::solve::{Final, SolveOptions};
+                use biscale::solve::SolveOptions;
                 biscale::solve::job::run(&biscale::solve::job::SolveJob {
                     target,
                     edits: biscale::solve::look::Edits {
@@ -661,11 +681,7 @@ fn main() -> ExitCode {
                         widen,
                         psi: psi.max(1),
                         beta,
-                        final_eval: match final_eval {
-                            FinalArg::Exact => Final::Exact,
-                            FinalArg::Fast => Final::Fast,
-                            FinalArg::Library => Final::Library,
-                        },
+                        final_eval: final_eval.into(),
                         sampling: biscale::sampling::SamplingConfig {
                             seed,
                             ..Default::default()
@@ -710,6 +726,7 @@ fn main() -> ExitCode {
             sweep,
             plot,
             library_targets,
+            final_eval,
             quiet,
         } => {
             let progress = biscale::library::progress::Progress { quiet };
@@ -726,7 +743,11 @@ fn main() -> ExitCode {
                                 binned_search: !lobes_search_only,
                                 widen,
                                 k: k.max(1),
-                                final_eval: biscale::solve::Final::Fast,
+                                final_eval: match (final_eval, library_targets) {
+                                    (Some(f), _) => f.into(),
+                                    (None, false) => Final::Fast,
+                                    (None, true) => Final::Library,
+                                },
                                 ..Default::default()
                             },
                             general: biscale::solve::general::GeneralOptions {

@@ -6,8 +6,10 @@
 //! solver: `m*` fixed; material solver: `g*` fixed) or with both unknown (general solver), and we
 //! record whether its best answer is within 7 % relative error, whether it is the original item
 //! ("exact recovery"), whether it is within 1 % of the original's look, and its run time. The
-//! solvers answer from library data (timed); the answer's error is then verified with the
-//! target's own model (untimed). For the geometry and material solvers, an **exhaustive scan**
+//! solvers rank the library by its data and, by default, re-evaluate their best `K` with the
+//! target's own model and answer the best of those (stage 3, as `biscale solve` does with the
+//! exact evaluator; `--final-eval library` answers by library data alone), all timed; the
+//! answer's error is then verified with the target's model (untimed). For the geometry and material solvers, an **exhaustive scan**
 //! of the same library — every item with its own light lobes or table, no representatives;
 //! geometries at every rotation the solver tries — runs on the same cases, so the gap between the compressed search and the best the library
 //! can offer is visible. With `library_targets` the target is instead the combination as the
@@ -125,8 +127,9 @@ struct Tally {
     within1: usize,
     times: Vec<f64>,
     errors: Vec<f64>,
-    /// Per case, the solver's own stage times (search, re-rank), when it reports them.
-    stages: Vec<(f64, f64)>,
+    /// Per case, the solver's own stage times (search, re-rank, final evaluation), when it
+    /// reports them.
+    stages: Vec<[f64; 3]>,
     /// Cases with an exhaustive scan beside the solver, and those where the solver's answer was
     /// the scan's optimum or no worse ([`as_good`]).
     compared: usize,
@@ -289,7 +292,7 @@ fn candidate(gs: &str, g: Option<usize>, ms: &str, m: Option<usize>, error: f64)
 }
 
 /// The error of an answer under the model that made the target (the full compact BVNDF with the
-/// material's prefiltered table, at fresh samples of the rotated target). The original
+/// material's prefiltered table, at the rotated target's samples, the ones the solvers fit). The original
 /// combination at rotation 0 is the target itself: its error is 0 by construction, not computed.
 /// With `library_targets` the library's data made the target, and the answer's error from
 /// that data (what the solver computed) is its error.
@@ -318,8 +321,9 @@ fn verified(
     Ok(v.first().map_or(f64::INFINITY, |c| c.error))
 }
 
-/// A timed solver's answer: its best candidate and its median stage times (search, re-rank).
-type SolverAnswer = (Option<Candidate>, Option<(f64, f64)>);
+/// A timed solver's answer: its best candidate and its stage times (search, re-rank, final
+/// evaluation).
+type SolverAnswer = (Option<Candidate>, Option<[f64; 3]>);
 
 pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
     let (ng, nm) = (lib.manifest.geometries, lib.manifest.materials);
@@ -336,6 +340,14 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
              cannot be rotated: use --psi 1 and no --sweep or --plot",
         ));
     }
+    if job.library_targets && job.options.final_eval != Final::Library {
+        return Err(Error::new(
+            "validate --library-targets",
+            "the paper's protocol judges answers with the library's own data, so a final \
+             evaluation with the forward model has nothing to be judged by: use --final-eval \
+             library (the default) with --library-targets",
+        ));
+    }
     if let Some(p) = &job.plot {
         let dir = p.parent().unwrap_or(std::path::Path::new(""));
         crate::atomic_write::check_output_dir(dir, "--plot")?;
@@ -349,12 +361,10 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
     let mi = lib.material_items()?;
     let gi = lib.geometry_items()?;
     let mut rng = Rng::new(job.seed);
-    // The solvers answer from library data (timed); the answer is then verified against the
-    // target's own model (untimed).
-    let opt = SolveOptions {
-        final_eval: Final::Library,
-        ..job.options.clone()
-    };
+    // The solvers answer from library data, or re-evaluate their best K with the final
+    // evaluator (timed); the answer is then verified against the target's own model at fresh
+    // samples (untimed).
+    let opt = job.options.clone();
     let (mut tg, mut tm, mut tgen, mut eg, mut em) = (
         Tally::default(),
         Tally::default(),
@@ -410,7 +420,11 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
         };
         // The best candidate, and the solver's stage times.
         let first = |r: crate::solve::SolveResult| {
-            let stages = (r.stats.search_seconds, r.stats.rerank_seconds);
+            let stages = [
+                r.stats.search_seconds,
+                r.stats.rerank_seconds,
+                r.stats.final_seconds,
+            ];
             (r.candidates.into_iter().next(), Some(stages))
         };
         let is_g = |b: &Candidate| b.geometry == Some(g);
@@ -489,8 +503,23 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
         "targets: the combinations as the library represents them (its light lobes and tables: \
          the paper's protocol); solvers answer from library data (timed) and are judged with it"
     } else {
-        "targets: fast forward model; solvers answer from library data (timed), the answer's \
-         error is then verified with the target's model (untimed)"
+        match opt.final_eval {
+            Final::Library => {
+                "targets: fast forward model; solvers answer from library data (timed), the \
+                 answer's error is then verified with the target's model at its samples \
+                 (untimed)"
+            }
+            Final::Fast => {
+                "targets: fast forward model; solvers re-evaluate their best K with the fast \
+                 forward model and answer the best (timed, stage 3), the answer's error is then \
+                 verified with the target's model at its samples (untimed)"
+            }
+            Final::Exact => {
+                "targets: fast forward model; solvers re-evaluate their best K with the exact \
+                 evaluator and answer the best (timed, stage 3), the answer's error is then \
+                 verified with the target's model at its samples (untimed)"
+            }
+        }
     };
     let mut out = format!(
         "Library {} ('{}': {} geometries, {} materials; {} / {}{} representatives), {} cases, seed {}; \
@@ -554,20 +583,31 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
         .iter()
         .filter(|(_, t)| !t.stages.is_empty())
         .map(|(name, t)| {
-            let (s, r): (Vec<f64>, Vec<f64>) = t.stages.iter().copied().unzip();
-            format!(
-                "{name} {:.3} / {:.3} s",
-                Tally::q(&s, 0.5),
-                Tally::q(&r, 0.5)
-            )
+            let stage =
+                |i: usize| Tally::q(&t.stages.iter().map(|s| s[i]).collect::<Vec<_>>(), 0.5);
+            if opt.final_eval == Final::Library {
+                format!("{name} {:.3} / {:.3} s", stage(0), stage(1))
+            } else {
+                format!(
+                    "{name} {:.3} / {:.3} / {:.3} s",
+                    stage(0),
+                    stage(1),
+                    stage(2)
+                )
+            }
         })
         .collect();
     if !stages.is_empty() {
         out += &format!(
             "\nMedian stage times inside the times above, search (stage 1: the compressed \
              libraries through their representatives) / re-rank (stage 2: the pool with each \
-             item's own data, coarse passes included): {} (the general solver's summed over its \
-             joint search and its solves).\n",
+             item's own data, coarse passes included){}: {} (the general solver's summed over \
+             its joint search and its solves).\n",
+            if opt.final_eval == Final::Library {
+                ""
+            } else {
+                " / final evaluation (stage 3: the best K)"
+            },
             stages.join(", ")
         );
     }
@@ -588,24 +628,25 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
     let (ng, nm) = (lib.manifest.geometries, lib.manifest.materials);
     // (pool, further pools re-ranked when the best is over 1 % (`SolveOptions::widen`), psi,
     // re-rank with light lobes (else binned columns), stage 1 also ranks by binned columns,
-    // final evaluation)
-    let settings: Vec<(usize, usize, usize, bool, bool, Final)> = vec![
-        (1, 0, 1, false, false, Final::Library),
-        (64, 0, 1, false, false, Final::Library),
-        (1, 0, 1, true, false, Final::Library),
-        (4, 0, 1, true, false, Final::Library),
-        (16, 0, 1, true, false, Final::Library),
-        (64, 0, 1, true, false, Final::Library),
-        (256, 0, 1, true, false, Final::Library),
-        (16, 0, 1, true, true, Final::Library),
-        (64, 0, 1, true, true, Final::Library),
-        (64, 3, 1, true, true, Final::Library),
-        (256, 0, 1, true, true, Final::Library),
-        (256, 3, 1, true, true, Final::Library),
-        (1024, 0, 1, true, true, Final::Library),
-        (4096, 0, 1, true, true, Final::Library),
-        (256, 0, 4, true, true, Final::Library),
-        (256, 0, 1, true, true, Final::Fast),
+    // final evaluation, candidates it re-evaluates)
+    let settings: Vec<(usize, usize, usize, bool, bool, Final, usize)> = vec![
+        (1, 0, 1, false, false, Final::Library, 1),
+        (64, 0, 1, false, false, Final::Library, 1),
+        (1, 0, 1, true, false, Final::Library, 1),
+        (4, 0, 1, true, false, Final::Library, 1),
+        (16, 0, 1, true, false, Final::Library, 1),
+        (64, 0, 1, true, false, Final::Library, 1),
+        (256, 0, 1, true, false, Final::Library, 1),
+        (16, 0, 1, true, true, Final::Library, 1),
+        (64, 0, 1, true, true, Final::Library, 1),
+        (64, 3, 1, true, true, Final::Library, 1),
+        (256, 0, 1, true, true, Final::Library, 1),
+        (256, 3, 1, true, true, Final::Library, 1),
+        (1024, 0, 1, true, true, Final::Library, 1),
+        (4096, 0, 1, true, true, Final::Library, 1),
+        (256, 0, 4, true, true, Final::Library, 1),
+        (256, 0, 1, true, true, Final::Fast, 3),
+        (256, 0, 1, true, true, Final::Fast, 8),
     ];
     let mut rng = Rng::new(job.seed ^ 0x5eed);
     let cases: Vec<(usize, usize)> = (0..job.cases)
@@ -617,7 +658,7 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
         .collect::<Result<_>>()?;
     let mut out = String::from("\nError against run time (geometry solver, same cases; errors verified with the target's model):\n\n| re-ranked pool | widened | stage 1 / stage 2 by | psi | final | median error | within 7 % | recovery | median time |\n|---|---|---|---|---|---|---|---|---|\n");
     let mut points = Vec::new();
-    for &(pool, widen, psi, rerank_fast, binned_search, fin) in &settings {
+    for &(pool, widen, psi, rerank_fast, binned_search, fin, k) in &settings {
         let opt = SolveOptions {
             pool,
             widen,
@@ -625,7 +666,7 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
             rerank_fast,
             binned_search,
             final_eval: fin,
-            k: 1,
+            k,
             ..job.options.clone()
         };
         let mut t = Tally::default();
@@ -649,11 +690,16 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
             (true, true) => "lobes + binned / lobes",
         };
         out += &format!(
-            "| {pool} | {} | {by} | {psi} | {fin:?} | {:.2} % | {:.1} % | {:.1} % | {:.3} s |\n",
+            "| {pool} | {} | {by} | {psi} | {} | {:.2} % | {:.1} % | {:.1} % | {:.3} s |\n",
             if widen > 0 {
                 format!("up to {widen}× more")
             } else {
                 "no".to_string()
+            },
+            match fin {
+                Final::Library => "library".to_string(),
+                Final::Fast => format!("fast, best {k}"),
+                Final::Exact => format!("exact, best {k}"),
             },
             me * 100.0,
             t.pct(t.within7),

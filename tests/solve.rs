@@ -160,14 +160,33 @@ fn validate_prints_the_table_and_design_exports_watertight_details() {
         t.contains("| geometry (material fixed) | 1 |") && t.contains("exhaustive"),
         "{t}"
     );
+    // Stage 3 (the forward model's re-evaluation of the best K) is timed and reported.
+    assert!(
+        t.contains("re-evaluate their best K with the fast forward model")
+            && t.contains("/ final evaluation (stage 3: the best K): geometry "),
+        "{t}"
+    );
     // The paper's protocol: the target is the combination as the library holds it, so an
     // exhaustive scan of the library's own data finds an answer at least as good as the truth
-    // (error 0).
-    let paper = biscale::validate::ValidateJob {
+    // (error 0). Its answers are judged by library data, so there is no stage 3.
+    let judged_by_model = biscale::validate::ValidateJob {
         library_targets: true,
         ..job.clone()
     };
+    let e = biscale::validate::run(&lib, &judged_by_model)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("--final-eval library"), "{e}");
+    let paper = biscale::validate::ValidateJob {
+        library_targets: true,
+        options: SolveOptions {
+            final_eval: Final::Library,
+            ..job.options.clone()
+        },
+        ..job.clone()
+    };
     let t = biscale::validate::run(&lib, &paper).unwrap();
+    assert!(!t.contains("stage 3"), "{t}");
     assert!(t.contains("the paper's protocol"), "{t}");
     assert_eq!(
         t.matches("exhaustive scan, same cases | 1 | 100.0 % |")

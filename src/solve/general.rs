@@ -10,7 +10,9 @@ use super::{
     exact_values, library_heightfield, Candidate, Final, Look, SolveOptions, SolveResult,
     SolveStats,
 };
+use crate::bvndf::CompactBvndf;
 use crate::error::{Error, Result};
+use crate::heightfield::Heightfield;
 use crate::library::Library;
 use crate::material::{parse_material, Material};
 use crate::rng::Rng;
@@ -420,7 +422,7 @@ fn accumulate(s: &mut SolveStats, o: &SolveStats) {
     s.representatives = s.representatives.max(o.representatives);
 }
 
-/// Evaluate candidates (geometry, rotation, material) with the final evaluator at fresh samples
+/// Evaluate candidates (geometry, rotation, material) with the final evaluator at the samples
 /// of the look, and sort them.
 pub fn finalize(
     lib: &Library,
@@ -432,17 +434,24 @@ pub fn finalize(
         return Ok(cands);
     }
     let lights = lib.gamma_layout().lights;
+    // Each geometry's heightfield, and for the fast evaluator its compact BVNDF, built once for
+    // the candidates that share it.
+    let mut built: HashMap<String, (Heightfield, Option<CompactBvndf>)> = HashMap::new();
     for c in cands.iter_mut() {
         let (samples, target) =
             super::rotated_samples(look, &lights, c.psi_deg.to_radians(), &opt.sampling);
-        let hf = library_heightfield(&c.geometry_spec)?;
+        let (hf, full) = match built.entry(c.geometry_spec.clone()) {
+            Entry::Occupied(e) => e.into_mut(),
+            Entry::Vacant(e) => e.insert((library_heightfield(&c.geometry_spec)?, None)),
+        };
         let mat = parse_material(&c.material_spec)?;
         let v = match opt.final_eval {
             Final::Fast => {
                 let pf = super::material_prefiltered(lib, &mat, c.material)?;
-                super::fast_values(&super::bvndf_of(&hf), &pf, &samples)
+                let full = full.get_or_insert_with(|| super::bvndf_of(hf));
+                super::fast_values(full, &pf, &samples)
             }
-            _ => exact_values(&hf, &[&mat], &samples, opt.exact_samples).remove(0),
+            _ => exact_values(hf, &[&mat], &samples, opt.exact_samples).remove(0),
         };
         c.error = samples.rel_error(&target, &v);
         c.evaluated_by = opt.final_eval;
