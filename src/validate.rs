@@ -11,8 +11,9 @@
 //! exact evaluator; `--final-eval library` answers by library data alone), all timed; the
 //! answer's error is then verified with the target's model (untimed). For the geometry and material solvers, an **exhaustive scan**
 //! of the same library — every item with its own light lobes or table, no representatives;
-//! geometries at every rotation the solver tries — runs on the same cases, so the gap between the compressed search and the best the library
-//! can offer is visible. With `library_targets` the target is instead the combination as the
+//! geometries at every rotation the solver tries; its best `K` through the same stage 3 — runs
+//! on the same cases, so the gap between the compressed search and the best the library can
+//! offer is visible. With `library_targets` the target is instead the combination as the
 //! library itself holds it (its light lobes and table) and answers are judged with that data:
 //! the paper's own protocol, where the library's model is the only one. The sweep varies
 //! the accuracy knobs of the geometry solver and prints error and time per setting, and can plot
@@ -207,13 +208,25 @@ pub fn exhaustive_geometry(
     m: usize,
     opt: &SolveOptions,
 ) -> Result<Candidate> {
+    Ok(exhaustive_geometries(lib, look, m, opt, 1)?.remove(0))
+}
+
+/// The `k` best geometries of [`exhaustive_geometry`]'s scan, each at its best rotation (the
+/// first rotation wins ties), best first; at least one.
+fn exhaustive_geometries(
+    lib: &Library,
+    look: &Look,
+    m: usize,
+    opt: &SolveOptions,
+    k: usize,
+) -> Result<Vec<Candidate>> {
     let mi = lib.material_items()?;
     let gi = lib.geometry_items()?;
     let mat = parse_material(&mi[m].spec)?;
     let pf = material_prefiltered(lib, &mat, Some(m))?;
     let lobes = lib.geometry_lobes()?;
-    // (error, geometry, rotation) of each rotation's best; the first rotation wins ties.
-    let mut best: Option<(f64, usize, f64)> = None;
+    // Each geometry's best (error, rotation) over the rotations.
+    let mut best = vec![(f64::INFINITY, 0.0); lib.manifest.geometries];
     for i in 0..opt.psi.max(1) {
         let psi = crate::solve::psi_angle(i, opt.psi);
         let (s, t) = rotated_samples(look, &lib.gamma_layout().lights, psi, &opt.sampling);
@@ -222,26 +235,31 @@ pub fn exhaustive_geometry(
             .into_par_iter()
             .map(|j| Ok(s.rel_error(&t, &lobes.get(j)?.fbar(&pf, &at))))
             .collect::<Result<_>>()?;
-        let (j, e) = argmin(&errs);
-        if best.is_none_or(|b| e < b.0) {
-            best = Some((e, j, psi));
+        for (b, e) in best.iter_mut().zip(errs) {
+            if e < b.0 {
+                *b = (e, psi);
+            }
         }
     }
-    let (e, j, psi) = best.unwrap_or((f64::INFINITY, 0, 0.0));
-    Ok(Candidate {
-        psi_deg: psi.to_degrees(),
-        ..candidate(&gi[j].spec, Some(j), &mi[m].spec, Some(m), e)
-    })
+    let errs: Vec<f64> = best.iter().map(|b| b.0).collect();
+    Ok(top(&errs, k)
+        .into_iter()
+        .map(|(j, e)| Candidate {
+            psi_deg: best.get(j).map_or(0.0, |b| b.1).to_degrees(),
+            ..candidate(&gi[j].spec, Some(j), &mi[m].spec, Some(m), e)
+        })
+        .collect())
 }
 
-/// The best material by an exhaustive scan of every library table (geometry fixed, its stored
-/// light lobes).
-fn exhaustive_material(
+/// The `k` best materials by an exhaustive scan of every library table (geometry fixed, its
+/// stored light lobes), best first; at least one.
+fn exhaustive_materials(
     lib: &Library,
     look: &Look,
     g: usize,
     opt: &SolveOptions,
-) -> Result<Candidate> {
+    k: usize,
+) -> Result<Vec<Candidate>> {
     let gi = lib.geometry_items()?;
     let mi = lib.material_items()?;
     let lobes = lib.geometry_lobes()?;
@@ -255,23 +273,43 @@ fn exhaustive_material(
             Ok(s.rel_error(&t, &geo.fbar(&pf)))
         })
         .collect::<Result<_>>()?;
-    let (best, e) = argmin(&errs);
-    Ok(candidate(
-        &gi[g].spec,
-        Some(g),
-        &mi[best].spec,
-        Some(best),
-        e,
-    ))
+    Ok(top(&errs, k)
+        .into_iter()
+        .map(|(m, e)| candidate(&gi[g].spec, Some(g), &mi[m].spec, Some(m), e))
+        .collect())
 }
 
-/// The index and value of the smallest finite error (ties by index; index 0 if none is finite).
-fn argmin(errs: &[f64]) -> (usize, f64) {
-    let best = crate::solve::smallest(errs, 1)
-        .first()
-        .copied()
-        .unwrap_or(0);
-    (best, errs.get(best).copied().unwrap_or(f64::INFINITY))
+/// An exhaustive scan's answer as the solvers give theirs: its best `opt.k` re-evaluated with
+/// the final evaluator, the best of them (stage 3); with [`Final::Library`] its best by library
+/// data.
+fn exhaustive_answer(
+    lib: &Library,
+    look: &Look,
+    opt: &SolveOptions,
+    scan: impl FnOnce(usize) -> Result<Vec<Candidate>>,
+) -> Result<Candidate> {
+    let k = if opt.final_eval == Final::Library {
+        1
+    } else {
+        opt.k.max(1)
+    };
+    let cands = crate::solve::general::finalize(lib, look, scan(k)?, opt)?;
+    cands
+        .into_iter()
+        .next()
+        .ok_or_else(|| Error::new("validate", "an exhaustive scan of an empty library"))
+}
+
+/// The indices and values of the `k` smallest finite errors, smallest first (ties by index);
+/// index 0 with an infinite error if none is finite.
+fn top(errs: &[f64], k: usize) -> Vec<(usize, f64)> {
+    let idx = crate::solve::smallest(errs, k.max(1));
+    if idx.is_empty() {
+        return vec![(0, f64::INFINITY)];
+    }
+    idx.into_iter()
+        .map(|i| (i, errs.get(i).copied().unwrap_or(f64::INFINITY)))
+        .collect()
 }
 
 /// A (geometry, material) answer at rotation 0.
@@ -443,7 +481,12 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
                 let scan = run(
                     &mut eg,
                     "geometry exhaustive scan",
-                    &|| exhaustive_geometry(lib, &look, m, &opt).map(|c| (Some(c), None)),
+                    &|| {
+                        exhaustive_answer(lib, &look, &opt, |k| {
+                            exhaustive_geometries(lib, &look, m, &opt, k)
+                        })
+                        .map(|c| (Some(c), None))
+                    },
                     &is_g,
                 )?;
                 tg.compare(&solver, &scan, c + 1, "geometry solver", job.quiet);
@@ -464,7 +507,12 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
                 let scan = run(
                     &mut em,
                     "material exhaustive scan",
-                    &|| exhaustive_material(lib, &look, g, &opt).map(|c| (Some(c), None)),
+                    &|| {
+                        exhaustive_answer(lib, &look, &opt, |k| {
+                            exhaustive_materials(lib, &look, g, &opt, k)
+                        })
+                        .map(|c| (Some(c), None))
+                    },
                     &is_m,
                 )?;
                 tm.compare(&solver, &scan, c + 1, "material solver", job.quiet);
@@ -510,13 +558,13 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
                  (untimed)"
             }
             Final::Fast => {
-                "targets: fast forward model; solvers re-evaluate their best K with the fast \
-                 forward model and answer the best (timed, stage 3), the answer's error is then \
+                "targets: fast forward model; solvers and exhaustive scans re-evaluate their best \
+                 K with the fast forward model and answer the best (timed, stage 3), the answer's error is then \
                  verified with the target's model at its samples (untimed)"
             }
             Final::Exact => {
-                "targets: fast forward model; solvers re-evaluate their best K with the exact \
-                 evaluator and answer the best (timed, stage 3), the answer's error is then \
+                "targets: fast forward model; solvers and exhaustive scans re-evaluate their best \
+                 K with the exact evaluator and answer the best (timed, stage 3), the answer's error is then \
                  verified with the target's model at its samples (untimed)"
             }
         }
@@ -723,6 +771,19 @@ mod tests {
         let mut c = candidate("g", Some(g), "m", Some(0), err);
         c.psi_deg = psi;
         (Some(c), err)
+    }
+
+    #[test]
+    fn a_scan_keeps_its_k_best_finite_errors_best_first() {
+        let errs = [0.3, f64::NAN, 0.1, 0.2, 0.1, f64::INFINITY];
+        assert_eq!(top(&errs, 3), vec![(2, 0.1), (4, 0.1), (3, 0.2)]);
+        // More asked than finite: the finite ones.
+        assert_eq!(top(&errs, 10).len(), 4);
+        // Nothing finite: one answer, infinitely far.
+        let none = top(&[f64::NAN, f64::INFINITY], 2);
+        assert_eq!(none.len(), 1);
+        assert_eq!(none[0].0, 0);
+        assert!(none[0].1.is_infinite());
     }
 
     #[test]
