@@ -286,7 +286,7 @@ fn exhaustive_answer(
     lib: &Library,
     look: &Look,
     opt: &SolveOptions,
-    scan: impl FnOnce(usize) -> Result<Vec<Candidate>>,
+    scan: &dyn Fn(usize) -> Result<Vec<Candidate>>,
 ) -> Result<Candidate> {
     let k = if opt.final_eval == Final::Library {
         1
@@ -467,56 +467,53 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
         };
         let is_g = |b: &Candidate| b.geometry == Some(g);
         let is_m = |b: &Candidate| b.material == Some(m);
+        // A solver, then (with the scans) its exhaustive scan through the same stage 3, and
+        // whether the solver found the scan's optimum.
+        let with_scan = |tally: &mut Tally,
+                         scans: &mut Tally,
+                         name: &str,
+                         solve: &dyn Fn() -> Result<SolverAnswer>,
+                         scan: &dyn Fn(usize) -> Result<Vec<Candidate>>,
+                         recovered: &dyn Fn(&Candidate) -> bool|
+         -> Result<()> {
+            let solver = run(tally, &format!("{name} solver"), solve, recovered)?;
+            if job.exhaustive {
+                let scan = run(
+                    scans,
+                    &format!("{name} exhaustive scan"),
+                    &|| exhaustive_answer(lib, &look, &opt, scan).map(|c| (Some(c), None)),
+                    recovered,
+                )?;
+                tally.compare(&solver, &scan, c + 1, &format!("{name} solver"), job.quiet);
+            }
+            Ok(())
+        };
         if job.runs(Solver::Geometry) {
-            let solver = run(
+            with_scan(
                 &mut tg,
-                "geometry solver",
+                &mut eg,
+                "geometry",
                 &|| {
                     crate::solve::geometry::solve(lib, &look, &mat, &mi[m].spec, Some(m), &opt)
                         .map(first)
                 },
+                &|k| exhaustive_geometries(lib, &look, m, &opt, k),
                 &is_g,
             )?;
-            if job.exhaustive {
-                let scan = run(
-                    &mut eg,
-                    "geometry exhaustive scan",
-                    &|| {
-                        exhaustive_answer(lib, &look, &opt, |k| {
-                            exhaustive_geometries(lib, &look, m, &opt, k)
-                        })
-                        .map(|c| (Some(c), None))
-                    },
-                    &is_g,
-                )?;
-                tg.compare(&solver, &scan, c + 1, "geometry solver", job.quiet);
-            }
         }
         if job.runs(Solver::Material) {
             let hf = library_heightfield(&gi[g].spec)?;
-            let solver = run(
+            with_scan(
                 &mut tm,
-                "material solver",
+                &mut em,
+                "material",
                 &|| {
                     crate::solve::material::solve(lib, &look, &hf, &gi[g].spec, Some(g), 0.0, &opt)
                         .map(first)
                 },
+                &|k| exhaustive_materials(lib, &look, g, &opt, k),
                 &is_m,
             )?;
-            if job.exhaustive {
-                let scan = run(
-                    &mut em,
-                    "material exhaustive scan",
-                    &|| {
-                        exhaustive_answer(lib, &look, &opt, |k| {
-                            exhaustive_materials(lib, &look, g, &opt, k)
-                        })
-                        .map(|c| (Some(c), None))
-                    },
-                    &is_m,
-                )?;
-                tm.compare(&solver, &scan, c + 1, "material solver", job.quiet);
-            }
         }
         if job.runs(Solver::General) {
             run(
