@@ -524,11 +524,13 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
             )?;
         }
         if !job.quiet {
+            let (done, secs) = (c + 1, t_all.elapsed().as_secs_f64());
             crate::library::progress::line(&format!(
-                "validate: case {}/{} done ({:.0} s)",
-                c + 1,
+                "validate: case {done}/{} done ({}, {:.2} cases/s, about {} left)",
                 job.cases,
-                t_all.elapsed().as_secs_f64()
+                crate::library::progress::fmt_secs(secs),
+                done as f64 / secs.max(1e-9),
+                crate::library::progress::fmt_secs(secs / done as f64 * (job.cases - done) as f64)
             ));
         }
     }
@@ -703,7 +705,9 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
         .collect::<Result<_>>()?;
     let mut out = String::from("\nError against run time (geometry solver, same cases; errors verified with the target's model):\n\n| re-ranked pool | widened | stage 1 / stage 2 by | psi | final | median error | within 7 % | recovery | median time |\n|---|---|---|---|---|---|---|---|---|\n");
     let mut points = Vec::new();
-    for &(pool, widen, psi, rerank_fast, binned_search, fin, k) in &settings {
+    let t_all = Instant::now();
+    for (i, &(pool, widen, psi, rerank_fast, binned_search, fin, k)) in settings.iter().enumerate()
+    {
         let opt = SolveOptions {
             pool,
             widen,
@@ -729,6 +733,17 @@ fn sweep(lib: &Library, job: &ValidateJob) -> Result<String> {
         }
         let (me, mt) = (Tally::q(&t.errors, 0.5), Tally::q(&t.times, 0.5));
         points.push((mt, me));
+        if !job.quiet {
+            let (done, secs) = (i + 1, t_all.elapsed().as_secs_f64());
+            crate::library::progress::line(&format!(
+                "validate: sweep setting {done}/{} done ({}, about {} left)",
+                settings.len(),
+                crate::library::progress::fmt_secs(secs),
+                crate::library::progress::fmt_secs(
+                    secs / done as f64 * (settings.len() - done) as f64
+                )
+            ));
+        }
         let by = match (rerank_fast, binned_search) {
             (false, _) => "binned / binned",
             (true, false) => "lobes / lobes",

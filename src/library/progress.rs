@@ -43,7 +43,7 @@ impl Sink {
 }
 
 /// `4.2 s`, `42 s`, `3m 05s`, `1h 02m`.
-fn fmt_secs(s: f64) -> String {
+pub fn fmt_secs(s: f64) -> String {
     if !s.is_finite() {
         return "?".into();
     }
