@@ -50,6 +50,7 @@ use crate::facetindex::FacetIndex;
 use crate::frame::Vec3;
 use crate::heightfield::Heightfield;
 use crate::jointvis::{joint_moments, GRAZING_DEG};
+use crate::library::progress::Progress;
 use crate::material::Material;
 use crate::seen::{seen_moments, Correction, SeenTable};
 use crate::sublobes::{cluster_shapes, Shape};
@@ -275,6 +276,13 @@ impl CompactBvndf {
     /// [`BvndfConfig::seen_rays`], correct the views beyond 85° with the dense first hits and
     /// build the fine seen table.
     pub fn build(hf: &Heightfield, cfg: &BvndfConfig) -> Self {
+        Self::build_with(hf, cfg, &Progress { quiet: true })
+    }
+
+    /// [`CompactBvndf::build`], with progress bars (rate and time left) for its long steps:
+    /// the fine seen table's first hits (its refining rounds added to the bar as they start)
+    /// and the surface points' horizon marches. The table is the same whatever `progress` says.
+    pub fn build_with(hf: &Heightfield, cfg: &BvndfConfig, progress: &Progress) -> Self {
         let grid = DirGrid::new(cfg.n_theta, cfg.n_phi);
         let facets = hf.facets();
         let abase = hf.base_area();
@@ -306,9 +314,12 @@ impl CompactBvndf {
                 DirGrid::new(cfg.n_theta, cfg.seen_phi.div_ceil(np) * np),
                 cfg.seen_phi.div_ceil(np),
                 rays,
+                progress,
             )
         });
-        let joint = joint_moments(&vis, &facets, abase, &assign, kc, &grid, cfg.points);
+        let joint = joint_moments(
+            &vis, &facets, abase, &assign, kc, &grid, cfg.points, progress,
+        );
         let n_pairs = n_nodes * (n_nodes + 1) / 2;
         let mut table = vec![0f32; n_pairs * kc * STRIDE];
         table

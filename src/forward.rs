@@ -245,7 +245,11 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
                 }
             }
             let t = Instant::now();
-            let geo = CompactBvndf::build(&hf, &job.bvndf);
+            let geo = CompactBvndf::build_with(
+                &hf,
+                &job.bvndf,
+                &crate::library::progress::Progress { quiet: job.quiet },
+            );
             log(
                 job.quiet,
                 format!(

@@ -33,6 +33,7 @@ use crate::bvndf::{moments, pair_index, STRIDE};
 use crate::dirgrid::DirGrid;
 use crate::frame::Vec3;
 use crate::heightfield::Facet;
+use crate::library::progress::Progress;
 use crate::rng::R2;
 use crate::visibility::Visibility;
 use rayon::prelude::*;
@@ -139,6 +140,7 @@ fn surface_points(
 
 /// The moments of clusters `assign` (`kc` of them) over every pair of nodes of `grid`, from about
 /// `points` points on the surface of `vis`.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn joint_moments(
     vis: &Visibility,
     facets: &[Facet],
@@ -147,6 +149,7 @@ pub(crate) fn joint_moments(
     kc: usize,
     grid: &DirGrid,
     points: usize,
+    progress: &Progress,
 ) -> JointMoments {
     let nt = grid.thetas.len();
     let np = grid.n_phi;
@@ -172,11 +175,13 @@ pub(crate) fn joint_moments(
     let pts = surface_points(vis, facets, grid, points);
 
     // Each facet's points as (weight in units of A_base, counts per azimuth), merged.
+    let bar = progress.bar(facets.len() as u64, "compact BVNDF: horizons (facets)");
     let counted: Vec<Vec<(f64, Vec<u8>)>> = facets
         .par_iter()
         .zip(&pts.by_facet)
         .zip(&pts.shares)
         .map(|((f, points), &share)| {
+            bar.inc(1);
             // Nodes of each azimuth the facet faces (a prefix of its polar nodes).
             let facing: Vec<u8> = (0..np)
                 .map(|j| {
@@ -227,6 +232,7 @@ pub(crate) fn joint_moments(
             merged
         })
         .collect();
+    bar.finish();
 
     let mut members: Vec<Vec<usize>> = vec![Vec::new(); kc];
     for (fi, &k) in assign.iter().enumerate() {
@@ -350,7 +356,8 @@ mod tests {
         let grid = DirGrid::new(6, 8);
         let vis = Visibility::new(&hf);
         let points = 4096;
-        let got = joint_moments(&vis, &facets, abase, &assign, kc, &grid, points);
+        let quiet = Progress { quiet: true };
+        let got = joint_moments(&vis, &facets, abase, &assign, kc, &grid, points, &quiet);
         let pts = surface_points(&vis, &facets, &grid, points);
         let n = grid.len();
         let mut want = vec![0.0f64; n * n * kc * STRIDE];

@@ -54,6 +54,7 @@
 use crate::bvndf::{moments, second_times, STRIDE};
 use crate::dirgrid::DirGrid;
 use crate::frame::{Rotation, Vec3};
+use crate::library::progress::Progress;
 use crate::visibility::Visibility;
 use rayon::prelude::*;
 
@@ -263,6 +264,7 @@ impl SeenTable {
         grid: DirGrid,
         ratio: usize,
         rays: usize,
+        progress: &Progress,
     ) -> Self {
         let nb = bands.clamp(1, 255);
         let (z0, z1) = centroid_z
@@ -272,17 +274,27 @@ impl SeenTable {
             });
         let band: Vec<u8> = centroid_z.iter().map(|&z| band_of(z, z0, z1, nb)).collect();
         let np = grid.n_phi;
+        // One bar over the directions cast: the first round's (every `ratio`-th azimuth), then
+        // each refining round's added as it starts (where the seen sums are not linear).
+        let first = grid.thetas.len() * np.div_ceil(ratio.max(1));
+        let bar = progress.bar(first as u64, "compact BVNDF: seen areas (directions)");
+        let rounds = std::sync::atomic::AtomicUsize::new(0);
         let cast = |nodes: &[usize]| -> Vec<Row> {
+            if rounds.fetch_add(1, std::sync::atomic::Ordering::Relaxed) > 0 {
+                bar.inc_length(nodes.len() as u64);
+            }
             nodes
                 .par_iter()
                 .map(|&b| {
                     let (m, seen) =
                         seen_moments(vis, normals, assign, kc, &band, nb, grid.direction(b), rays);
+                    bar.inc(1);
                     (m.concat(), seen)
                 })
                 .collect()
         };
         let rows = refine_rows(&grid, ratio, &cast);
+        bar.finish();
         let n_cast = rows.iter().filter(|r| r.is_some()).count();
         // Per node, the cast azimuths of its row on either side (the node itself if cast).
         let (mut before, mut after) = (vec![0usize; grid.len()], vec![0usize; grid.len()]);

@@ -63,7 +63,7 @@ pub fn fmt_secs(s: f64) -> String {
 /// A bar that prints a plain line each time it crosses another tenth of its length.
 struct Plain {
     what: String,
-    len: u64,
+    len: AtomicU64,
     pos: AtomicU64,
     /// Tenths already reported.
     reported: AtomicU64,
@@ -74,7 +74,8 @@ struct Plain {
 impl Plain {
     fn inc(&self, n: u64) {
         let pos = self.pos.fetch_add(n, Ordering::Relaxed) + n;
-        let tenth = (pos.min(self.len) * 10) / self.len.max(1);
+        let len = self.len.load(Ordering::Relaxed);
+        let tenth = (pos.min(len) * 10) / len.max(1);
         let mut last = self.reported.load(Ordering::Relaxed);
         while tenth > last {
             match self
@@ -90,18 +91,27 @@ impl Plain {
         }
     }
 
+    /// `n` more items: the tenths are counted again from where the bar now stands.
+    fn inc_length(&self, n: u64) {
+        let len = self.len.fetch_add(n, Ordering::Relaxed) + n;
+        let pos = self.pos.load(Ordering::Relaxed);
+        self.reported
+            .store((pos.min(len) * 10) / len.max(1), Ordering::Relaxed);
+    }
+
     fn line(&self, pos: u64) -> String {
-        let pos = pos.min(self.len);
+        let len = self.len.load(Ordering::Relaxed);
+        let pos = pos.min(len);
         let el = self.start.elapsed().as_secs_f64();
         let rate = pos as f64 / el.max(1e-9);
-        let eta = (self.len - pos) as f64 / rate;
+        let eta = (len - pos) as f64 / rate;
         format!(
             "{}: {pos}/{} ({}%), {:.2}/s, ETA {}, elapsed {}",
             self.what,
-            self.len,
-            pos * 100 / self.len.max(1),
+            len,
+            pos * 100 / len.max(1),
             rate,
-            if pos == self.len {
+            if pos == len {
                 "0.0 s".into()
             } else {
                 fmt_secs(eta)
@@ -145,6 +155,15 @@ impl Bar {
             BarKind::Hidden => {}
             BarKind::Term(b) => b.finish(),
             BarKind::Plain(p) => p.finish(),
+        }
+    }
+
+    /// `n` more items than the bar was made for (work found on the way).
+    pub fn inc_length(&self, n: u64) {
+        match &self.0 {
+            BarKind::Hidden => {}
+            BarKind::Term(b) => b.inc_length(n),
+            BarKind::Plain(p) => p.inc_length(n),
         }
     }
 }
@@ -280,7 +299,7 @@ impl Progress {
 fn plain_bar(len: u64, what: &str, sink: Sink) -> Plain {
     Plain {
         what: what.to_string(),
-        len,
+        len: AtomicU64::new(len),
         pos: AtomicU64::new(0),
         reported: AtomicU64::new(0),
         start: Instant::now(),
@@ -317,6 +336,23 @@ mod tests {
                 lines[want - 1]
             );
         }
+        // A bar that grows on the way reports the new length, and counts tenths of it again.
+        let (sink, lines) = captured();
+        let b = Bar(BarKind::Plain(plain_bar(10, "directions", sink)));
+        for _ in 0..10 {
+            b.inc(1);
+        }
+        b.inc_length(10);
+        for _ in 0..10 {
+            b.inc(1);
+        }
+        b.finish();
+        let lines = lines.lock().unwrap();
+        assert_eq!(lines.len(), 15, "{lines:?}");
+        assert!(lines[9].contains("10/10 (100%)"), "{}", lines[9]);
+        assert!(lines[10].contains("12/20 (60%)"), "{}", lines[10]);
+        assert!(lines[14].contains("20/20 (100%)"), "{}", lines[14]);
+        drop(lines);
         // A bar finished early reports where it stopped, once.
         let (sink, lines) = captured();
         let b = Bar(BarKind::Plain(plain_bar(50, "materials", sink)));

@@ -119,7 +119,11 @@ pub fn combination_look(
     let hf = crate::heightmap_io::resolve_geometry(geometry, 10.0, 1.0)
         .map_err(|e| e.within("--target-geometry"))?;
     let t = std::time::Instant::now();
-    let geo = crate::bvndf::CompactBvndf::build(&hf, &crate::bvndf::BvndfConfig::forward());
+    let geo = crate::bvndf::CompactBvndf::build_with(
+        &hf,
+        &crate::bvndf::BvndfConfig::forward(),
+        progress,
+    );
     let pre = crate::prefilter::Prefiltered::build_split(
         &mat,
         &crate::prefilter::PrefilterConfig::default(),
