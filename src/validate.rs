@@ -9,11 +9,11 @@
 //! solvers rank the library by its data and, by default, re-evaluate their best `K` with the
 //! target's own model and answer the best of those (stage 3, as `biscale solve` does with the
 //! exact evaluator; `--final-eval library` answers by library data alone), all timed; the
-//! answer's error is then verified with the target's model (untimed). For the geometry and material solvers, an **exhaustive scan**
-//! of the same library — every item with its own light lobes or table, no representatives;
-//! geometries at every rotation the solver tries; its best `K` through the same stage 3 — runs
-//! on the same cases, so the gap between the compressed search and the best the library can
-//! offer is visible. With `library_targets` the target is instead the combination as the
+//! answer's error is then verified with the target's model (untimed). For the geometry and
+//! material solvers, an **exhaustive scan** of the same library — every item with its own light
+//! lobes or table, no representatives; geometries at every rotation the solver tries; its best
+//! `K` through the same stage 3 — runs on the same cases, so the gap between the compressed
+//! search and the best the library can offer is visible. With `library_targets` the target is instead the combination as the
 //! library itself holds it (its light lobes and table) and answers are judged with that data:
 //! the paper's own protocol, where the library's model is the only one. The sweep varies
 //! the accuracy knobs of the geometry solver and prints error and time per setting, and can plot
