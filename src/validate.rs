@@ -13,11 +13,11 @@
 //! material solvers, an **exhaustive scan** of the same library — every item with its own light
 //! lobes or table, no representatives; geometries at every rotation the solver tries; its best
 //! `K` through the same stage 3 — runs on the same cases, so the gap between the compressed
-//! search and the best the library can offer is visible. With `library_targets` the target is instead the combination as the
-//! library itself holds it (its light lobes and table) and answers are judged with that data:
-//! the paper's own protocol, where the library's model is the only one. The sweep varies
-//! the accuracy knobs of the geometry solver and prints error and time per setting, and can plot
-//! them as a PNG.
+//! search and the best the library can offer is visible. With `library_targets` the target is
+//! instead the combination as the library itself holds it (its light lobes and table) and
+//! answers are judged with that data: the paper's own protocol, where the library's model is
+//! the only one. The sweep varies the accuracy knobs of the geometry solver and prints error
+//! and time per setting, and can plot them as a PNG.
 
 use crate::error::{Error, Result};
 use crate::fast::fbar_one;
