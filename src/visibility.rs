@@ -1271,6 +1271,16 @@ mod tests {
         "pyramids:n=64,period=16,height=6",
     ];
 
+    /// Test azimuth `i` in degrees: every `every`-th one along an axis or a diagonal (in turn),
+    /// whose lines repeat, the others drawn from `r`.
+    fn azimuth_deg(i: usize, every: usize, r: &mut crate::rng::Rng) -> f64 {
+        if i % every == 0 {
+            45.0 * (i / every % 8) as f64
+        } else {
+            r.range(0.0, 360.0)
+        }
+    }
+
     fn relief(spec: &str) -> Heightfield {
         crate::generators::parse_generator(spec)
             .unwrap()
@@ -1554,11 +1564,7 @@ mod tests {
             let v = Visibility::new(&hf);
             let facets = hf.facets();
             for i in 0..48 {
-                let phi = if i % 4 == 0 {
-                    45.0 * (i / 4 % 8) as f64
-                } else {
-                    r.range(0.0, 360.0)
-                };
+                let phi = azimuth_deg(i, 4, &mut r);
                 let (dx, dy) = (phi.to_radians().cos(), phi.to_radians().sin());
                 let steepest = facets
                     .iter()
@@ -1677,11 +1683,7 @@ mod tests {
             for i in 0..800 {
                 // Half the views along the axes and diagonals, whose lines repeat (the walk
                 // jumps whole periods there), some at grazing angles over flat ground.
-                let phi = if i % 2 == 0 {
-                    45.0 * (i / 2 % 8) as f64
-                } else {
-                    r.range(0.0, 360.0)
-                };
+                let phi = azimuth_deg(i, 2, &mut r);
                 let w = crate::frame::dir_from_deg(r.range(0.0, 88.5), phi);
                 let (u, vv) = (r.range(0.0, n as f64), r.range(0.0, n as f64));
                 let (p, f) = v.first_hit(u, vv, w);
