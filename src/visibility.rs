@@ -1274,7 +1274,7 @@ mod tests {
     /// Test azimuth `i` in degrees: every `every`-th one along an axis or a diagonal (in turn),
     /// whose lines repeat, the others drawn from `r`.
     fn azimuth_deg(i: usize, every: usize, r: &mut crate::rng::Rng) -> f64 {
-        if i % every == 0 {
+        if i.is_multiple_of(every) {
             45.0 * (i / every % 8) as f64
         } else {
             r.range(0.0, 360.0)
