@@ -11,9 +11,9 @@
 //! above the threshold is found (occluded), or when even the highest point of the whole surface
 //! could no longer reach the threshold (`(z_max - p_z)/s <= m`: visible). Rays therefore march at
 //! most `(z_max - p_z) · tan(theta)` grid units, which is where grazing directions cost more; no
-//! other distance limit is applied, so tall surfaces at 89.9° stay exact. Blocks of 8×8 cells (4×4
-//! or 2×2 when the size does not divide by 8) whose highest point cannot beat the best slope so far
-//! are skipped whole. Back-facing points are occluded by their own facet, which the first
+//! other distance limit is applied, so tall surfaces at 89.9° stay exact. Blocks of 8×8 cells (on a grid
+//! of any size: where 8 does not divide a side, each distinct block of successive periods has
+//! its own maximum) whose highest point cannot beat the best slope so far are skipped whole. Back-facing points are occluded by their own facet, which the first
 //! breakpoint finds.
 //!
 //! Marches are short (a library build averages 3.5 cells per shadow test), so what each march
@@ -73,6 +73,10 @@ struct Along {
     rise: f64,
 }
 
+/// Side, in cells, of the blocks a march skips whole when even their highest point cannot
+/// occlude ([`Visibility::new`]), on a grid of any size.
+const BLOCK: i64 = 8;
+
 /// `x` modulo `n` (non-negative), with a mask when `n` is a power of two (`mask = n - 1`,
 /// otherwise `-1`): `rem_euclid` is an integer division, and walks wrap at every cell.
 #[inline]
@@ -112,9 +116,10 @@ pub struct Visibility<'a> {
     /// slope tolerance proportional to the relief let marches over very tall surfaces run for
     /// ever without deciding).
     htol: f64,
-    /// Side of the square blocks of cells whose maximum height lets the march skip them (1: none).
+    /// Side of the square blocks of cells whose maximum height lets the march skip them
+    /// ([`BLOCK`]).
     bsize: i64,
-    /// Blocks per row and per column.
+    /// Distinct blocks per row and per column (`side / gcd(side, bsize)`).
     bw: i64,
     bh: i64,
     /// Highest surface point of each block (its cells' corners), row-major.
@@ -133,12 +138,20 @@ impl<'a> Visibility<'a> {
         let (lo, hi) = hf.min_max();
         let htol = 1e-10 * (1.0 + (hi - lo).abs()) + 64.0 * f64::EPSILON * hi.abs().max(lo.abs());
         let (w, h) = (hf.width() as i64, hf.height() as i64);
-        let bsize = [8i64, 4, 2]
-            .into_iter()
-            .find(|b| w % b == 0 && h % b == 0)
-            .unwrap_or(1);
-        let (bw, bh) = (w / bsize, h / bsize);
-        let mut bmax = vec![f64::NEG_INFINITY; (bw * bh) as usize];
+        // Blocks of BLOCK × BLOCK cells in unwrapped cell coordinates. Where BLOCK does not
+        // divide a side, the blocks of successive periods hold different cells; the table keeps
+        // every distinct one, `side / gcd(side, BLOCK)` per side (block `b` and `b + bw` hold
+        // the same cells, `lcm(side, BLOCK)` apart). Each block's highest point is the maximum
+        // of its cells' corners, over the rows' windows first, then the columns'.
+        let bsize = BLOCK;
+        let gcd = |mut a: i64, mut b: i64| {
+            while b != 0 {
+                (a, b) = (b, a % b);
+            }
+            a
+        };
+        let (bw, bh) = (w / gcd(w, bsize), h / gcd(h, bsize));
+        let mut cell_max = vec![0.0; (w * h) as usize];
         // The largest of `±gx`, `±gy`, `±(gx + gy)`, `±(gx - gy)` over the facets' gradients.
         let mut rise = [f64::NEG_INFINITY; 8];
         for y in 0..h {
@@ -149,9 +162,7 @@ impl<'a> Visibility<'a> {
                     hf.at(x, y + 1),
                     hf.at(x + 1, y + 1),
                 );
-                let m = z00.max(z10).max(z01).max(z11);
-                let b = &mut bmax[((y / bsize) * bw + x / bsize) as usize];
-                *b = b.max(m);
+                cell_max[(y * w + x) as usize] = z00.max(z10).max(z01).max(z11);
                 // The lower-right facet, then the upper-left ([`Heightfield::cell_facets`]).
                 for (gx, gy) in [(z10 - z00, z11 - z10), (z11 - z01, z01 - z00)] {
                     let g = [gx, gx + gy, gy, gy - gx, -gx, -gx - gy, -gy, gx - gy];
@@ -168,6 +179,24 @@ impl<'a> Visibility<'a> {
                 rise[k]
             }
         });
+        let mut rows = vec![f64::NEG_INFINITY; (h * bw) as usize];
+        for y in 0..h {
+            for bx in 0..bw {
+                let m = &mut rows[(y * bw + bx) as usize];
+                for i in 0..bsize {
+                    *m = m.max(cell_max[(y * w + (bx * bsize + i) % w) as usize]);
+                }
+            }
+        }
+        let mut bmax = vec![f64::NEG_INFINITY; (bw * bh) as usize];
+        for by in 0..bh {
+            for bx in 0..bw {
+                let m = &mut bmax[(by * bw + bx) as usize];
+                for j in 0..bsize {
+                    *m = m.max(rows[(((by * bsize + j) % h) * bw + bx) as usize]);
+                }
+            }
+        }
         Visibility {
             hf,
             w,
