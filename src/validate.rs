@@ -400,8 +400,8 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
     let gi = lib.geometry_items()?;
     let mut rng = Rng::new(job.seed);
     // The solvers answer from library data, or re-evaluate their best K with the final
-    // evaluator (timed); the answer is then verified against the target's own model at fresh
-    // samples (untimed).
+    // evaluator (timed); the answer is then verified against the target's own model at the
+    // samples the solvers fit (untimed).
     let opt = job.options.clone();
     let (mut tg, mut tm, mut tgen, mut eg, mut em) = (
         Tally::default(),
@@ -550,23 +550,21 @@ pub fn run(lib: &Library, job: &ValidateJob) -> Result<String> {
         "targets: the combinations as the library represents them (its light lobes and tables: \
          the paper's protocol); solvers answer from library data (timed) and are judged with it"
     } else {
-        match opt.final_eval {
-            Final::Library => {
-                "targets: fast forward model; solvers answer from library data (timed), the \
-                 answer's error is then verified with the target's model at its samples \
-                 (untimed)"
-            }
+        let answer = match opt.final_eval {
+            Final::Library => "solvers answer from library data (timed)",
             Final::Fast => {
-                "targets: fast forward model; solvers and exhaustive scans re-evaluate their best \
-                 K with the fast forward model and answer the best (timed, stage 3), the answer's error is then \
-                 verified with the target's model at its samples (untimed)"
+                "solvers and exhaustive scans re-evaluate their best K with the fast forward \
+                 model and answer the best (timed, stage 3)"
             }
             Final::Exact => {
-                "targets: fast forward model; solvers and exhaustive scans re-evaluate their best \
-                 K with the exact evaluator and answer the best (timed, stage 3), the answer's error is then \
-                 verified with the target's model at its samples (untimed)"
+                "solvers and exhaustive scans re-evaluate their best K with the exact evaluator \
+                 and answer the best (timed, stage 3)"
             }
-        }
+        };
+        &format!(
+            "targets: fast forward model; {answer}, the answer's error is then verified with the \
+             target's model at its samples (untimed)"
+        )
     };
     let mut out = format!(
         "Library {} ('{}': {} geometries, {} materials; {} / {}{} representatives), {} cases, seed {}; \

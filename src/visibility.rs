@@ -867,9 +867,9 @@ impl Visibility<'_> {
             // The sweep goes back along the line (direction -d) from where the last ray is at
             // zmax to where the first ray is below zmin. The last ray is the lowest and lands
             // first: before its hit no ray meets the surface, and a sweep from zmax would pass
-            // every breakpoint of its descent, `(zmax - z) / m` long, for nothing (most of a
-            // tall surface's sweep at grazing views: 4–7 breakpoints in 8 on tall bumps, fBm
-            // and pyramids). Its own walk skips the blocks it passes above, so the sweep
+            // every breakpoint of its descent, `(zmax - z) / m` long, for nothing (4 to 7 times
+            // the rest of the sweep's breakpoints on tall bumps, fBm and pyramids,
+            // docs/forward-model.md). Its own walk skips the blocks it passes above, so the sweep
             // starts a little before that hit, taken back into the period.
             let s_last = lr.s(i, lr.per_line - 1);
             let (ul, vl) = crossing(lr.per_line - 1);
