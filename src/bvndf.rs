@@ -379,7 +379,7 @@ impl CompactBvndf {
         for (a, &k) in areas.iter().zip(&assign) {
             cluster_area[k as usize] += a;
         }
-        let shapes = cluster_shapes(&normals, &areas, &assign, &planar, cfg.sub_lobes);
+        let (shapes, part) = cluster_shapes(&normals, &areas, &assign, &planar, cfg.sub_lobes);
         let mut resultants = vec![Vec3::default(); kc];
         for ((n, a), &k) in normals.iter().zip(&areas).zip(&assign) {
             resultants[k as usize] = resultants[k as usize] + *n * *a;
@@ -392,7 +392,9 @@ impl CompactBvndf {
                 && kappa_from_resultant((resultants[k].norm() / cluster_area[k]).min(1.0))
                     >= crate::vmf::KAPPA_MAX
         };
-        let facets = FacetIndex::build(&normals, &areas, &assign, |k| !planar[k] && !delta(k));
+        let facets = FacetIndex::build(&normals, &areas, &assign, &part, |k| {
+            !planar[k] && !delta(k)
+        });
         CompactBvndf {
             grid,
             clusters: kc,
@@ -461,10 +463,12 @@ impl CompactBvndf {
     /// The part of `fbar(wi, wo)` that the glossy lobes of `sharp` (too narrow for the
     /// prefiltered table) add on the curved clusters, summed over their facets within `radius`
     /// of the half vector ([`FacetIndex::near`]):
-    /// `Σ_f ρ_c A_f (n_f·wo)+ (n_f·wi)+ f_sharp(n_f, wi, wo) / a_v(wo)`, where `ρ_c` is the
-    /// jointly visible fraction of the facet's cluster (its tabulated visible projected area
-    /// towards `wo` over its facets' projected area, `Σ_s (R_s·wo)+` over its sub-lobes): the
-    /// facet sum of the exact evaluator, with each facet's visibility taken as its cluster's.
+    /// `Σ_f ρ_f A_f (n_f·wo)+ (n_f·wi)+ f_sharp(n_f, wi, wo) / a_v(wo)`, where `ρ_f` is the
+    /// jointly visible fraction of the facet's sub-lobe part ([`Self::visible_fractions`]: its
+    /// cluster's tabulated visible projected area towards `wo`, shared among the parts as the
+    /// sub-lobes' fit shares it): the facet sum of the exact evaluator, with each facet's
+    /// visibility taken as its part's (on rough surfaces under sharp lobes, up to 10 points
+    /// nearer the exact method than its cluster's, docs/forward-model.md).
     /// Planar clusters (and curved ones whose normals all but coincide) are not included: their
     /// lobe is a delta, which the table's material answers at its centre, sharp lobes included.
     pub fn sharp_fbar(&self, wi: Vec3, wo: Vec3, sharp: &Material, radius: f64) -> f64 {
@@ -481,27 +485,18 @@ impl CompactBvndf {
             return 0.0;
         }
         let h = (wi + wo).normalized();
-        let mut rho: Vec<Option<f64>> = vec![None; self.clusters];
+        let mut rho: Vec<Option<Visible>> = vec![None; self.clusters];
         let mut s = 0.0;
-        self.facets.near(h, radius, |n, a, c| {
+        self.facets.near(h, radius, |n, a, c, part| {
             let (ci, co) = (n.dot(wi), n.dot(wo));
             if ci <= 0.0 || co <= 0.0 {
                 return;
             }
-            let r = *rho[c].get_or_insert_with(|| {
+            let vis = rho[c].get_or_insert_with(|| {
                 let g = blend(&wa, &wb, |na, b| self.entry(na, b, c));
-                let seen = wo.x * g[0] + wo.y * g[1] + wo.z * g[2];
-                let seen = correction.as_ref().map_or(seen, |k| k.area(c, seen));
-                let facing = match self.shapes.get(c).filter(|sh| !sh.is_empty()) {
-                    Some(sh) => sh.parts.iter().map(|p| p.resultant.dot(wo).max(0.0)).sum(),
-                    None => self.resultants[c].dot(wo).max(0.0),
-                };
-                if facing > 0.0 {
-                    (seen / facing).clamp(0.0, 1.0)
-                } else {
-                    0.0
-                }
+                self.visible_fractions(c, wo, &g, correction.as_ref())
             });
+            let r = vis.parts.get(part as usize).copied().unwrap_or(vis.whole);
             if r > 0.0 {
                 s += r * a * co * ci * sharp.eval(n, wi, wo);
             }
@@ -512,6 +507,54 @@ impl CompactBvndf {
         } else {
             0.0
         }
+    }
+
+    /// The jointly visible fraction of cluster `c`'s facets at a pair whose interpolated moments
+    /// are `g`: the cluster's seen area towards `wo` (rescaled by the fine seen table) over its
+    /// facets' projected area, and, for a cluster with sub-lobes, each part's own fraction, the
+    /// sub-lobes' fit ([`Shape::visible`]) scaled so that the parts' seen areas sum to the
+    /// cluster's (a part that does not face `wo` keeps the whole cluster's fraction).
+    fn visible_fractions(
+        &self,
+        c: usize,
+        wo: Vec3,
+        g: &[f64; STRIDE],
+        correction: Option<&Correction>,
+    ) -> Visible {
+        let seen = wo.x * g[0] + wo.y * g[1] + wo.z * g[2];
+        let seen = correction.map_or(seen, |k| k.area(c, seen));
+        let shape = self.shapes.get(c).filter(|sh| !sh.is_empty());
+        let facing = match shape {
+            Some(sh) => sh.parts.iter().map(|p| p.resultant.dot(wo).max(0.0)).sum(),
+            None => self.resultants[c].dot(wo).max(0.0),
+        };
+        let whole = if facing > 0.0 {
+            (seen / facing).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        let mut parts = Vec::new();
+        if let Some(sh) = shape.filter(|_| whole > 0.0) {
+            sh.visible(wo, g, &mut parts);
+            let fitted: f64 = parts
+                .iter()
+                .zip(&sh.parts)
+                .map(|(f, p)| f * p.resultant.dot(wo).max(0.0))
+                .sum();
+            if fitted > 0.0 && seen > 0.0 {
+                let k = seen / fitted;
+                for (f, p) in parts.iter_mut().zip(&sh.parts) {
+                    *f = if p.resultant.dot(wo) > 0.0 {
+                        (*f * k).clamp(0.0, 1.0)
+                    } else {
+                        whole
+                    };
+                }
+            } else {
+                parts.clear();
+            }
+        }
+        Visible { whole, parts }
     }
 
     /// The lobes of `gamma(·; wi, wo)`: `(weight, vMF)` per cluster, weights summing to at most 1.
@@ -769,6 +812,16 @@ fn push_cluster(
     out.push((mass / diag, lobe));
 }
 
+/// The jointly visible fraction of one cluster's facets at a pair
+/// ([`CompactBvndf::visible_fractions`]).
+#[derive(Clone)]
+struct Visible {
+    /// The whole cluster's.
+    whole: f64,
+    /// Each sub-lobe's (empty: the whole cluster's for every facet).
+    parts: Vec<f64>,
+}
+
 /// `Q w` for the symmetric matrix `Q` stored as `(xx, yy, zz, xy, xz, yz)`.
 #[inline]
 pub(crate) fn second_times(q: &[f64], w: Vec3) -> Vec3 {
@@ -825,5 +878,76 @@ mod tests {
         let total: f64 = l.iter().map(|x| x.0).sum();
         assert!((total - 1.0).abs() < 1e-6, "{l:?}");
         assert!(l.iter().all(|x| x.1.mu.z > 0.999999 && x.1.kappa >= 1e5));
+    }
+
+    /// Each facet's part of its cluster is the one whose moments hold it, and at a pair the
+    /// parts' fractions share the cluster's seen area (each at most 1).
+    #[test]
+    fn parts_share_their_clusters_seen_area() {
+        let hf = crate::generators::parse_generator("bumps:n=32,count=5,radius=7,height=4,seed=3")
+            .unwrap()
+            .build()
+            .unwrap();
+        let cfg = BvndfConfig {
+            points: 4096,
+            ..BvndfConfig::default()
+        };
+        let b = CompactBvndf::build(&hf, &cfg);
+        let facets = hf.facets();
+        let abase = hf.base_area();
+        let normals: Vec<Vec3> = facets.iter().map(|f| f.n).collect();
+        let areas: Vec<f64> = facets.iter().map(|f| f.area / abase).collect();
+        let (assign, _) = cluster_normals(&normals, &areas, cfg.clusters);
+        let planar = planar_clusters(&normals, &assign, &b.centres);
+        let (shapes, part) = cluster_shapes(&normals, &areas, &assign, &planar, cfg.sub_lobes);
+        assert_eq!(shapes, b.shapes);
+        let mut sums = vec![Vec::new(); b.clusters];
+        for (c, sh) in shapes.iter().enumerate() {
+            sums[c] = vec![Vec3::default(); sh.parts.len()];
+        }
+        for (i, (&k, &p)) in assign.iter().zip(&part).enumerate() {
+            let (k, p) = (k as usize, p as usize);
+            if shapes[k].is_empty() {
+                assert_eq!(p, crate::sublobes::NO_PART as usize);
+            } else {
+                sums[k][p] = sums[k][p] + normals[i] * areas[i];
+            }
+        }
+        let mut checked = 0;
+        for (c, sh) in shapes.iter().enumerate() {
+            for (got, want) in sums[c].iter().zip(&sh.parts) {
+                assert!((*got - want.resultant).norm() < 1e-9 * (1.0 + want.resultant.norm()));
+            }
+            for (wi, wo) in [
+                (dir_from_deg(20.0, 10.0), dir_from_deg(60.0, 200.0)),
+                (dir_from_deg(70.0, 90.0), dir_from_deg(80.0, 300.0)),
+            ] {
+                let (wa, wb) = (b.grid.weights(wi), b.grid.weights(wo));
+                let g = blend(&wa, &wb, |na, nb| b.entry(na, nb, c));
+                let v = b.visible_fractions(c, wo, &g, None);
+                assert!(v
+                    .parts
+                    .iter()
+                    .chain([&v.whole])
+                    .all(|f| (0.0..=1.0).contains(f)));
+                if v.parts.is_empty() || v.parts.iter().any(|&f| f == 1.0) {
+                    continue;
+                }
+                let seen = wo.x * g[0] + wo.y * g[1] + wo.z * g[2];
+                let shared: f64 = v
+                    .parts
+                    .iter()
+                    .zip(&sh.parts)
+                    .filter(|(_, p)| p.resultant.dot(wo) > 0.0)
+                    .map(|(f, p)| f * p.resultant.dot(wo))
+                    .sum();
+                assert!(
+                    (shared - seen).abs() <= 1e-9 * seen.max(1e-12),
+                    "{shared} {seen}"
+                );
+                checked += 1;
+            }
+        }
+        assert!(checked > 4, "{checked} pairs of curved clusters checked");
     }
 }

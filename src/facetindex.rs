@@ -24,6 +24,8 @@ pub struct FacetIndex {
     /// Areas in units of the base area.
     areas: Vec<f64>,
     cluster: Vec<u16>,
+    /// Each entry's part of its cluster ([`crate::sublobes::cluster_shapes`]).
+    part: Vec<u16>,
 }
 
 fn cell_of(v: f64) -> usize {
@@ -31,12 +33,13 @@ fn cell_of(v: f64) -> usize {
 }
 
 impl FacetIndex {
-    /// Index the facets (`normals`, `areas` in units of the base area, cluster `assign`) whose
-    /// cluster `keep` accepts.
+    /// Index the facets (`normals`, `areas` in units of the base area, cluster `assign`, part of
+    /// the cluster `part`) whose cluster `keep` accepts.
     pub fn build(
         normals: &[Vec3],
         areas: &[f64],
         assign: &[u16],
+        part: &[u16],
         keep: impl Fn(usize) -> bool,
     ) -> Self {
         let key = |n: &Vec3| cell_of(n.y) * CELLS + cell_of(n.x);
@@ -56,12 +59,14 @@ impl FacetIndex {
             normals: Vec::new(),
             areas: Vec::new(),
             cluster: Vec::new(),
+            part: Vec::new(),
         };
         let mut counts = vec![0u32; CELLS * CELLS];
         for &i in &idx {
             let (n, k) = (normals[i], assign[i]);
             let same = out.normals.last().is_some_and(|m| *m == n)
-                && out.cluster.last().is_some_and(|c| *c == k);
+                && out.cluster.last().is_some_and(|c| *c == k)
+                && out.part.last().is_some_and(|q| *q == part[i]);
             if same {
                 if let Some(a) = out.areas.last_mut() {
                     *a += areas[i];
@@ -70,6 +75,7 @@ impl FacetIndex {
                 out.normals.push(n);
                 out.areas.push(areas[i]);
                 out.cluster.push(k);
+                out.part.push(part[i]);
                 counts[key(&n)] += 1;
             }
         }
@@ -90,12 +96,12 @@ impl FacetIndex {
 
     /// Bytes held.
     pub fn bytes(&self) -> usize {
-        self.start.len() * 4 + self.normals.len() * (24 + 8 + 2)
+        self.start.len() * 4 + self.normals.len() * (24 + 8 + 2 + 2)
     }
 
-    /// Call `f(normal, area, cluster)` for every facet whose normal is within `radius` radians
-    /// of the unit vector `h`.
-    pub fn near(&self, h: Vec3, radius: f64, mut f: impl FnMut(Vec3, f64, usize)) {
+    /// Call `f(normal, area, cluster, part)` for every facet whose normal is within `radius`
+    /// radians of the unit vector `h`.
+    pub fn near(&self, h: Vec3, radius: f64, mut f: impl FnMut(Vec3, f64, usize, u16)) {
         let cos_r = radius.cos();
         let (x0, x1) = (cell_of(h.x - radius), cell_of(h.x + radius));
         let (y0, y1) = (cell_of(h.y - radius), cell_of(h.y + radius));
@@ -108,7 +114,7 @@ impl FacetIndex {
             for i in s..e {
                 let n = self.normals[i];
                 if n.dot(h) >= cos_r {
-                    f(n, self.areas[i], self.cluster[i] as usize);
+                    f(n, self.areas[i], self.cluster[i] as usize, self.part[i]);
                 }
             }
         }
@@ -136,12 +142,13 @@ mod tests {
             }
         }
         let areas = vec![0.5; normals.len()];
-        let ix = FacetIndex::build(&normals, &areas, &assign, |_| true);
+        let part = vec![0u16; normals.len()];
+        let ix = FacetIndex::build(&normals, &areas, &assign, &part, |_| true);
         assert_eq!(ix.len(), normals.len() / 2);
         let h = Vec3::new(0.2, 0.1, 1.0).normalized();
         for r in [0.0, 0.03, 0.1, 0.5] {
             let mut got = Vec::new();
-            ix.near(h, r, |n, a, _| {
+            ix.near(h, r, |n, a, _, _| {
                 assert_eq!(a, 1.0);
                 got.push(n);
             });
@@ -153,7 +160,7 @@ mod tests {
         }
         // A cluster left out is not indexed.
         assert_eq!(
-            FacetIndex::build(&normals, &areas, &assign, |k| k == 0).len(),
+            FacetIndex::build(&normals, &areas, &assign, &part, |k| k == 0).len(),
             normals.len() / 4
         );
     }

@@ -115,7 +115,7 @@ impl Shape {
     /// Each part's visible fraction at a pair whose interpolated jointly visible moments are
     /// `g` (module doc): 0 for the parts that do not face `wo`; the whole cluster's fraction
     /// (`wo·G1` over the facing parts' projected area) where there is no fit.
-    fn visible(&self, wo: Vec3, g: &[f64; STRIDE], fraction: &mut Vec<f64>) {
+    pub(crate) fn visible(&self, wo: Vec3, g: &[f64; STRIDE], fraction: &mut Vec<f64>) {
         // First each part's projected area towards wo, then its fraction.
         fraction.clear();
         fraction.extend(self.parts.iter().map(|p| p.resultant.dot(wo).max(0.0)));
@@ -231,44 +231,60 @@ fn gains_of(columns: &[[f64; STRIDE]]) -> Vec<[f64; STRIDE]> {
 }
 
 /// The sub-lobes of every curved cluster: at most `s` of them, by area-weighted k-means within
-/// the cluster.
+/// the cluster; and each facet's part, an index into its cluster's [`Shape::parts`]
+/// ([`NO_PART`] for a facet of a cluster without sub-lobes).
 pub(crate) fn cluster_shapes(
     normals: &[Vec3],
     areas: &[f64],
     assign: &[u16],
     planar: &[bool],
     s: usize,
-) -> Vec<Shape> {
+) -> (Vec<Shape>, Vec<u16>) {
     let mut members: Vec<Vec<usize>> = vec![Vec::new(); planar.len()];
     for (i, &k) in assign.iter().enumerate() {
         members[k as usize].push(i);
     }
-    members
+    let split: Vec<(Shape, Vec<u16>)> = members
         .par_iter()
         .zip(planar)
         .map(|(idx, &flat)| {
             if flat || s < 2 || idx.is_empty() {
-                return Shape::new(Vec::new());
+                return (Shape::new(Vec::new()), vec![NO_PART; idx.len()]);
             }
             let n: Vec<Vec3> = idx.iter().map(|&i| normals[i]).collect();
             let a: Vec<f64> = idx.iter().map(|&i| areas[i]).collect();
             let (sa, sc) = cluster_normals(&n, &a, s);
-            let parts = (0..sc.len())
-                .map(|k| {
-                    part_of(
-                        n.iter()
-                            .zip(&a)
-                            .zip(&sa)
-                            .filter(|(_, &j)| j as usize == k)
-                            .map(|((nn, aa), _)| (*nn, *aa)),
-                    )
-                })
-                .filter(|p| p.resultant.norm() > 0.0)
-                .collect();
-            Shape::new(parts)
+            // The k-means groups kept as parts (those with a resultant), numbered in order.
+            let mut number = vec![NO_PART; sc.len()];
+            let mut parts = Vec::new();
+            for (k, slot) in number.iter_mut().enumerate() {
+                let part = part_of(
+                    n.iter()
+                        .zip(&a)
+                        .zip(&sa)
+                        .filter(|(_, &j)| j as usize == k)
+                        .map(|((nn, aa), _)| (*nn, *aa)),
+                );
+                if part.resultant.norm() > 0.0 {
+                    *slot = parts.len() as u16;
+                    parts.push(part);
+                }
+            }
+            let of_facet = sa.iter().map(|&j| number[j as usize]).collect();
+            (Shape::new(parts), of_facet)
         })
-        .collect()
+        .collect();
+    let mut part = vec![NO_PART; normals.len()];
+    for (idx, (_, of_facet)) in members.iter().zip(&split) {
+        for (&i, &p) in idx.iter().zip(of_facet) {
+            part[i] = p;
+        }
+    }
+    (split.into_iter().map(|(sh, _)| sh).collect(), part)
 }
+
+/// The part of a facet whose cluster has no sub-lobes.
+pub(crate) const NO_PART: u16 = u16::MAX;
 
 /// The moments and vMF of a set of `(normal, area)`.
 fn part_of(facets: impl Iterator<Item = (Vec3, f64)>) -> SubLobe {
@@ -312,7 +328,9 @@ mod tests {
         }
         let areas = vec![1.0 / normals.len() as f64; normals.len()];
         let assign = vec![0u16; normals.len()];
-        cluster_shapes(&normals, &areas, &assign, &[false], 16).remove(0)
+        cluster_shapes(&normals, &areas, &assign, &[false], 16)
+            .0
+            .remove(0)
     }
 
     fn moments_of(parts: &[&SubLobe]) -> [f64; STRIDE] {
