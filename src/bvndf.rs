@@ -192,6 +192,12 @@ pub struct CompactBvndf {
     /// height band, which corrects the pair table's interpolation ([`crate::seen`]; `None`
     /// with `seen_phi` off).
     pub seen: Option<SeenTable>,
+    /// Per cluster, `Σ A n` of its facets by sub-lobe part and height band
+    /// (`[part · bands + band]`; one part for a cluster without sub-lobes), for
+    /// [`Self::visible_fractions`].
+    pub part_bands: Vec<Vec<Vec3>>,
+    /// Height bands of `part_bands` (the fine seen table's; 1 without it).
+    pub bands: usize,
 }
 
 /// The index of the node pair `(a, b)` (either order) in the table's pair order.
@@ -298,11 +304,11 @@ impl CompactBvndf {
         let seen_count =
             Some(cfg.seen_rays.min(SEEN_PER_CELL * hf.width() * hf.height())).filter(|&r| r > 0);
         // The fine grid has a whole multiple of the pair grid's azimuths, so it holds its nodes.
+        let centroid_z: Vec<f64> = facets
+            .iter()
+            .map(|f| (f.v[0].z + f.v[1].z + f.v[2].z) / 3.0)
+            .collect();
         let seen_table = seen_count.filter(|_| cfg.seen_phi > np).map(|rays| {
-            let centroid_z: Vec<f64> = facets
-                .iter()
-                .map(|f| (f.v[0].z + f.v[1].z + f.v[2].z) / 3.0)
-                .collect();
             SeenTable::build(
                 &vis,
                 &normals,
@@ -380,6 +386,26 @@ impl CompactBvndf {
             cluster_area[k as usize] += a;
         }
         let (shapes, part) = cluster_shapes(&normals, &areas, &assign, &planar, cfg.sub_lobes);
+        // Each facet's height band, as the fine seen table splits its clusters (one without it).
+        let bands = seen_table.as_ref().map_or(1, |t| t.bands);
+        let band = if bands > 1 {
+            crate::seen::facet_bands(&centroid_z, bands)
+        } else {
+            vec![0; facets.len()]
+        };
+        let mut part_bands: Vec<Vec<Vec3>> = shapes
+            .iter()
+            .map(|sh| vec![Vec3::default(); sh.parts.len().max(1) * bands])
+            .collect();
+        for i in 0..facets.len() {
+            let p = if part[i] == crate::sublobes::NO_PART {
+                0
+            } else {
+                part[i] as usize
+            };
+            let e = &mut part_bands[assign[i] as usize][p * bands + band[i] as usize];
+            *e = *e + normals[i] * areas[i];
+        }
         let mut resultants = vec![Vec3::default(); kc];
         for ((n, a), &k) in normals.iter().zip(&areas).zip(&assign) {
             resultants[k as usize] = resultants[k as usize] + *n * *a;
@@ -392,7 +418,7 @@ impl CompactBvndf {
                 && kappa_from_resultant((resultants[k].norm() / cluster_area[k]).min(1.0))
                     >= crate::vmf::KAPPA_MAX
         };
-        let facets = FacetIndex::build(&normals, &areas, &assign, &part, |k| {
+        let facets = FacetIndex::build(&normals, &areas, &assign, &part, &band, |k| {
             !planar[k] && !delta(k)
         });
         CompactBvndf {
@@ -406,6 +432,8 @@ impl CompactBvndf {
             facets,
             resultants,
             seen: seen_table,
+            part_bands,
+            bands,
         }
     }
 
@@ -417,6 +445,7 @@ impl CompactBvndf {
             + self.centres.len() * 49
             + self.shapes.iter().map(Shape::bytes).sum::<usize>()
             + self.facets.bytes()
+            + self.part_bands.iter().map(|v| v.len() * 24).sum::<usize>()
     }
 
     #[inline]
@@ -464,11 +493,13 @@ impl CompactBvndf {
     /// prefiltered table) add on the curved clusters, summed over their facets within `radius`
     /// of the half vector ([`FacetIndex::near`]):
     /// `Σ_f ρ_f A_f (n_f·wo)+ (n_f·wi)+ f_sharp(n_f, wi, wo) / a_v(wo)`, where `ρ_f` is the
-    /// jointly visible fraction of the facet's sub-lobe part ([`Self::visible_fractions`]: its
-    /// cluster's tabulated visible projected area towards `wo`, shared among the parts as the
-    /// sub-lobes' fit shares it): the facet sum of the exact evaluator, with each facet's
-    /// visibility taken as its part's (on rough surfaces under sharp lobes, up to 10 points
-    /// nearer the exact method than its cluster's, docs/forward-model.md).
+    /// jointly visible fraction of the facet's sub-lobe part and height band
+    /// ([`Self::visible_fractions`]: its cluster's tabulated visible projected area towards
+    /// `wo`, shared among the parts as the sub-lobes' fit shares it and among the bands as the
+    /// fine seen table's band model does): the facet sum of the exact evaluator, with each
+    /// facet's visibility taken as its part's at its height (on rough surfaces under sharp
+    /// lobes, up to 11 points nearer the exact method than its cluster's,
+    /// docs/forward-model.md).
     /// Planar clusters (and curved ones whose normals all but coincide) are not included: their
     /// lobe is a delta, which the table's material answers at its centre, sharp lobes included.
     pub fn sharp_fbar(&self, wi: Vec3, wo: Vec3, sharp: &Material, radius: f64) -> f64 {
@@ -485,18 +516,24 @@ impl CompactBvndf {
             return 0.0;
         }
         let h = (wi + wo).normalized();
+        // The fine seen table's weights of both ends, for the height bands (found once).
+        let fine = self
+            .seen
+            .as_ref()
+            .filter(|_| self.bands > 1)
+            .map(|t| (t.node_weights(wi), t.node_weights(wo)));
         let mut rho: Vec<Option<Visible>> = vec![None; self.clusters];
         let mut s = 0.0;
-        self.facets.near(h, radius, |n, a, c, part| {
+        self.facets.near(h, radius, |n, a, c, part, band| {
             let (ci, co) = (n.dot(wi), n.dot(wo));
             if ci <= 0.0 || co <= 0.0 {
                 return;
             }
             let vis = rho[c].get_or_insert_with(|| {
                 let g = blend(&wa, &wb, |na, b| self.entry(na, b, c));
-                self.visible_fractions(c, wo, &g, correction.as_ref())
+                self.visible_fractions(c, (wi, wo), &g, correction.as_ref(), fine.as_ref())
             });
-            let r = vis.parts.get(part as usize).copied().unwrap_or(vis.whole);
+            let r = vis.of(part, band);
             if r > 0.0 {
                 s += r * a * co * ci * sharp.eval(n, wi, wo);
             }
@@ -509,17 +546,24 @@ impl CompactBvndf {
         }
     }
 
-    /// The jointly visible fraction of cluster `c`'s facets at a pair whose interpolated moments
-    /// are `g`: the cluster's seen area towards `wo` (rescaled by the fine seen table) over its
-    /// facets' projected area, and, for a cluster with sub-lobes, each part's own fraction, the
-    /// sub-lobes' fit ([`Shape::visible`]) scaled so that the parts' seen areas sum to the
-    /// cluster's (a part that does not face `wo` keeps the whole cluster's fraction).
+    /// The jointly visible fraction of cluster `c`'s facets at a pair `(wi, wo)` whose
+    /// interpolated moments are `g`: the cluster's seen area towards `wo` (rescaled by the fine
+    /// seen table) over its facets' projected area; for a cluster with sub-lobes, each part's
+    /// own fraction, the sub-lobes' fit ([`Shape::visible`]) scaled so that the parts' seen
+    /// areas sum to the cluster's (a part that does not face `wo` keeps the whole cluster's
+    /// fraction); and with the fine seen table's height bands, each (part, band)'s, which also
+    /// keeps each band's share of the seen area as the band model gives it
+    /// ([`share_by_bands`]).
+    ///
+    /// `fine`: the fine seen table's interpolation weights of `wi` and `wo`
+    /// ([`SeenTable::node_weights`]); `None`: by part only.
     fn visible_fractions(
         &self,
         c: usize,
-        wo: Vec3,
+        (wi, wo): (Vec3, Vec3),
         g: &[f64; STRIDE],
         correction: Option<&Correction>,
+        fine: Option<&FineWeights>,
     ) -> Visible {
         let seen = wo.x * g[0] + wo.y * g[1] + wo.z * g[2];
         let seen = correction.map_or(seen, |k| k.area(c, seen));
@@ -554,7 +598,25 @@ impl CompactBvndf {
                 parts.clear();
             }
         }
-        Visible { whole, parts }
+        let table = match (&self.seen, fine) {
+            (Some(t), Some((fa, fb))) if self.bands > 1 && whole > 0.0 => {
+                let mut bands = Vec::new();
+                t.band_fractions((wi, fa), (wo, fb), c, &mut bands);
+                let fp: Vec<f64> = if parts.is_empty() {
+                    vec![whole]
+                } else {
+                    parts.clone()
+                };
+                share_by_bands(&self.part_bands[c], &fp, &bands, seen, whole, wo)
+            }
+            _ => Vec::new(),
+        };
+        Visible {
+            whole,
+            parts,
+            table,
+            bands: self.bands,
+        }
     }
 
     /// The lobes of `gamma(·; wi, wo)`: `(weight, vMF)` per cluster, weights summing to at most 1.
@@ -812,6 +874,10 @@ fn push_cluster(
     out.push((mass / diag, lobe));
 }
 
+/// The fine seen table's interpolation weights of a pair's two ends, `wi` then `wo`
+/// ([`SeenTable::node_weights`]).
+type FineWeights = (Vec<(usize, f64)>, Vec<(usize, f64)>);
+
 /// The jointly visible fraction of one cluster's facets at a pair
 /// ([`CompactBvndf::visible_fractions`]).
 #[derive(Clone)]
@@ -820,6 +886,98 @@ struct Visible {
     whole: f64,
     /// Each sub-lobe's (empty: the whole cluster's for every facet).
     parts: Vec<f64>,
+    /// Each (part, height band)'s, `[part · bands + band]` (empty: by part only).
+    table: Vec<f64>,
+    bands: usize,
+}
+
+impl Visible {
+    /// The fraction of a facet of sub-lobe `part` (or [`crate::sublobes::NO_PART`]) and height
+    /// band `band`.
+    #[inline]
+    fn of(&self, part: u16, band: u8) -> f64 {
+        let p = if part == crate::sublobes::NO_PART {
+            0
+        } else {
+            part as usize
+        };
+        if let Some(&r) = self.table.get(p * self.bands + band as usize) {
+            return r;
+        }
+        self.parts.get(part as usize).copied().unwrap_or(self.whole)
+    }
+}
+
+/// The most iterations of [`share_by_bands`]' proportional fitting.
+const BAND_FIT_ROUNDS: usize = 16;
+
+/// One cluster's jointly visible fraction per (part, height band), `[part · bands + band]`:
+/// the table closest to uniform (iterative proportional fitting, a product of a factor per part
+/// and one per band) whose seen areas towards `wo` add up, per part, to what the sub-lobes' fit
+/// gives (`parts`: its fractions, or the cluster's `whole` fraction for one part) and, per band,
+/// to what the band model gives (`bands`: per band, its jointly visible fraction and its facets'
+/// projected area facing `wo`), both scaled to the cluster's seen area `seen`; each at most 1.
+/// `pb`: the facets' `Σ A n` per (part, band). Empty when a margin is empty.
+fn share_by_bands(
+    pb: &[Vec3],
+    parts: &[f64],
+    bands: &[(f64, f64)],
+    seen: f64,
+    whole: f64,
+    wo: Vec3,
+) -> Vec<f64> {
+    let nb = bands.len();
+    let np = parts.len();
+    if nb == 0 || pb.len() != np * nb || !(seen > 0.0) {
+        return Vec::new();
+    }
+    let area: Vec<f64> = pb.iter().map(|r| r.dot(wo).max(0.0)).collect();
+    let row = |p: usize| -> f64 { area[p * nb..][..nb].iter().sum() };
+    let col = |h: usize| -> f64 { (0..np).map(|p| area[p * nb + h]).sum() };
+    let scaled = |v: Vec<f64>| -> Option<Vec<f64>> {
+        let t: f64 = v.iter().sum();
+        (t > 0.0).then(|| v.iter().map(|x| x * seen / t).collect())
+    };
+    let (Some(pt), Some(bt)) = (
+        scaled((0..np).map(|p| parts[p] * row(p)).collect()),
+        scaled((0..nb).map(|h| bands[h].0 * col(h)).collect()),
+    ) else {
+        return Vec::new();
+    };
+    let mut r = vec![1.0f64; np * nb];
+    for _ in 0..BAND_FIT_ROUNDS {
+        // Until the bands' shares hold to 1e-6 after a round (most pairs: a few rounds).
+        let mut moved = 0.0f64;
+        for h in 0..nb {
+            let s: f64 = (0..np).map(|p| r[p * nb + h] * area[p * nb + h]).sum();
+            if s > 0.0 {
+                let k = bt[h] / s;
+                moved = moved.max((k - 1.0).abs());
+                (0..np).for_each(|p| r[p * nb + h] *= k);
+            }
+        }
+        if moved < 1e-6 {
+            break;
+        }
+        for p in 0..np {
+            let s: f64 = (0..nb).map(|h| r[p * nb + h] * area[p * nb + h]).sum();
+            if s > 0.0 {
+                let k = pt[p] / s;
+                r[p * nb..][..nb].iter_mut().for_each(|x| *x *= k);
+            }
+        }
+    }
+    for p in 0..np {
+        let facing = row(p) > 0.0;
+        for x in &mut r[p * nb..][..nb] {
+            *x = if facing && x.is_finite() {
+                x.clamp(0.0, 1.0)
+            } else {
+                whole
+            };
+        }
+    }
+    r
 }
 
 /// `Q w` for the symmetric matrix `Q` stored as `(xx, yy, zz, xy, xz, yz)`.
@@ -924,13 +1082,13 @@ mod tests {
             ] {
                 let (wa, wb) = (b.grid.weights(wi), b.grid.weights(wo));
                 let g = blend(&wa, &wb, |na, nb| b.entry(na, nb, c));
-                let v = b.visible_fractions(c, wo, &g, None);
+                let v = b.visible_fractions(c, (wi, wo), &g, None, None);
                 assert!(v
                     .parts
                     .iter()
                     .chain([&v.whole])
                     .all(|f| (0.0..=1.0).contains(f)));
-                if v.parts.is_empty() || v.parts.iter().any(|&f| f == 1.0) {
+                if v.parts.is_empty() || v.parts.contains(&1.0) {
                     continue;
                 }
                 let seen = wo.x * g[0] + wo.y * g[1] + wo.z * g[2];
@@ -949,5 +1107,41 @@ mod tests {
             }
         }
         assert!(checked > 4, "{checked} pairs of curved clusters checked");
+    }
+
+    /// The table by part and band keeps both margins: each part's seen area as the sub-lobes'
+    /// fit gives it and each band's as the band model gives it, both scaled to the cluster's.
+    #[test]
+    fn parts_by_bands_keep_both_margins() {
+        let wo = dir_from_deg(50.0, 30.0);
+        // 3 parts × 4 bands of facets all facing wo, with unequal areas.
+        let pb: Vec<Vec3> = (0..12)
+            .map(|i| wo * (0.02 + 0.01 * ((i * 7) % 5) as f64))
+            .collect();
+        let parts = [0.6, 0.3, 0.45];
+        let bands = [(0.2, 0.0), (0.4, 0.0), (0.5, 0.0), (0.7, 0.0)];
+        let seen = 0.05;
+        let r = share_by_bands(&pb, &parts, &bands, seen, 0.4, wo);
+        assert_eq!(r.len(), 12);
+        let area = |i: usize| pb[i].dot(wo);
+        let row = |p: usize| (0..4).map(|h| area(p * 4 + h)).sum::<f64>();
+        let col = |h: usize| (0..3).map(|p| area(p * 4 + h)).sum::<f64>();
+        let pt: Vec<f64> = (0..3).map(|p| parts[p] * row(p)).collect();
+        let bt: Vec<f64> = (0..4).map(|h| bands[h].0 * col(h)).collect();
+        let (ps, bs): (f64, f64) = (pt.iter().sum(), bt.iter().sum());
+        assert!(r.iter().all(|x| (0.0..1.0).contains(x)), "{r:?}");
+        let total: f64 = (0..12).map(|i| r[i] * area(i)).sum();
+        assert!((total - seen).abs() < 1e-5 * seen, "{total}");
+        for p in 0..3 {
+            let got: f64 = (0..4).map(|h| r[p * 4 + h] * area(p * 4 + h)).sum();
+            assert!((got - pt[p] * seen / ps).abs() < 1e-5 * seen, "part {p}");
+        }
+        // The fit stops once a round moves the bands' shares by under 1e-6.
+        for h in 0..4 {
+            let got: f64 = (0..3).map(|p| r[p * 4 + h] * area(p * 4 + h)).sum();
+            assert!((got - bt[h] * seen / bs).abs() < 1e-5 * seen, "band {h}");
+        }
+        // A margin that is all zero leaves the table empty (by part only).
+        assert!(share_by_bands(&pb, &parts, &[(0.0, 0.0); 4], seen, 0.4, wo).is_empty());
     }
 }

@@ -26,6 +26,8 @@ pub struct FacetIndex {
     cluster: Vec<u16>,
     /// Each entry's part of its cluster ([`crate::sublobes::cluster_shapes`]).
     part: Vec<u16>,
+    /// Each entry's height band ([`crate::seen::facet_bands`]; 0 without bands).
+    band: Vec<u8>,
 }
 
 fn cell_of(v: f64) -> usize {
@@ -34,12 +36,13 @@ fn cell_of(v: f64) -> usize {
 
 impl FacetIndex {
     /// Index the facets (`normals`, `areas` in units of the base area, cluster `assign`, part of
-    /// the cluster `part`) whose cluster `keep` accepts.
+    /// the cluster `part`, height band `band`) whose cluster `keep` accepts.
     pub fn build(
         normals: &[Vec3],
         areas: &[f64],
         assign: &[u16],
         part: &[u16],
+        band: &[u8],
         keep: impl Fn(usize) -> bool,
     ) -> Self {
         let key = |n: &Vec3| cell_of(n.y) * CELLS + cell_of(n.x);
@@ -60,13 +63,15 @@ impl FacetIndex {
             areas: Vec::new(),
             cluster: Vec::new(),
             part: Vec::new(),
+            band: Vec::new(),
         };
         let mut counts = vec![0u32; CELLS * CELLS];
         for &i in &idx {
             let (n, k) = (normals[i], assign[i]);
             let same = out.normals.last().is_some_and(|m| *m == n)
                 && out.cluster.last().is_some_and(|c| *c == k)
-                && out.part.last().is_some_and(|q| *q == part[i]);
+                && out.part.last().is_some_and(|q| *q == part[i])
+                && out.band.last().is_some_and(|h| *h == band[i]);
             if same {
                 if let Some(a) = out.areas.last_mut() {
                     *a += areas[i];
@@ -76,6 +81,7 @@ impl FacetIndex {
                 out.areas.push(areas[i]);
                 out.cluster.push(k);
                 out.part.push(part[i]);
+                out.band.push(band[i]);
                 counts[key(&n)] += 1;
             }
         }
@@ -96,12 +102,12 @@ impl FacetIndex {
 
     /// Bytes held.
     pub fn bytes(&self) -> usize {
-        self.start.len() * 4 + self.normals.len() * (24 + 8 + 2 + 2)
+        self.start.len() * 4 + self.normals.len() * (24 + 8 + 2 + 2 + 1)
     }
 
-    /// Call `f(normal, area, cluster, part)` for every facet whose normal is within `radius`
-    /// radians of the unit vector `h`.
-    pub fn near(&self, h: Vec3, radius: f64, mut f: impl FnMut(Vec3, f64, usize, u16)) {
+    /// Call `f(normal, area, cluster, part, band)` for every facet whose normal is within
+    /// `radius` radians of the unit vector `h`.
+    pub fn near(&self, h: Vec3, radius: f64, mut f: impl FnMut(Vec3, f64, usize, u16, u8)) {
         let cos_r = radius.cos();
         let (x0, x1) = (cell_of(h.x - radius), cell_of(h.x + radius));
         let (y0, y1) = (cell_of(h.y - radius), cell_of(h.y + radius));
@@ -114,7 +120,13 @@ impl FacetIndex {
             for i in s..e {
                 let n = self.normals[i];
                 if n.dot(h) >= cos_r {
-                    f(n, self.areas[i], self.cluster[i] as usize, self.part[i]);
+                    f(
+                        n,
+                        self.areas[i],
+                        self.cluster[i] as usize,
+                        self.part[i],
+                        self.band[i],
+                    );
                 }
             }
         }
@@ -143,12 +155,13 @@ mod tests {
         }
         let areas = vec![0.5; normals.len()];
         let part = vec![0u16; normals.len()];
-        let ix = FacetIndex::build(&normals, &areas, &assign, &part, |_| true);
+        let band = vec![0u8; normals.len()];
+        let ix = FacetIndex::build(&normals, &areas, &assign, &part, &band, |_| true);
         assert_eq!(ix.len(), normals.len() / 2);
         let h = Vec3::new(0.2, 0.1, 1.0).normalized();
         for r in [0.0, 0.03, 0.1, 0.5] {
             let mut got = Vec::new();
-            ix.near(h, r, |n, a, _, _| {
+            ix.near(h, r, |n, a, _, _, _| {
                 assert_eq!(a, 1.0);
                 got.push(n);
             });
@@ -160,7 +173,7 @@ mod tests {
         }
         // A cluster left out is not indexed.
         assert_eq!(
-            FacetIndex::build(&normals, &areas, &assign, &part, |k| k == 0).len(),
+            FacetIndex::build(&normals, &areas, &assign, &part, &band, |k| k == 0).len(),
             normals.len() / 4
         );
     }

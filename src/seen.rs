@@ -29,6 +29,10 @@
 //! `(n·wo)`-weighted mean normal at the pair and interpolated from the pair table's nodes; the
 //! jointly visible mean normal is turned by the rotation between the two ([`Correction::turn`]).
 //!
+//! The same model, band by band, shares a cluster's jointly visible area among its facets'
+//! heights where the fast method sums a sharp lobe over facets
+//! ([`crate::bvndf::CompactBvndf::sharp_fbar`], [`SeenTable::band_fractions`]).
+//!
 //! The rows are estimated from first hits by line sweeps ([`seen_moments`],
 //! [`Visibility::seen_facets`]: the rays of one vertical plane resolved in one pass down its
 //! profile), `seen_rays` per direction, and also hold each cluster's 9 moments of
@@ -130,6 +134,18 @@ pub(crate) fn seen_moments(
     out.iter_mut().flatten().for_each(|x| *x *= per_ray);
     banded.iter_mut().for_each(|b| *b = *b * per_ray);
     (out, banded)
+}
+
+/// The height band of every facet (of `nb`, at most 255, evenly between the lowest and the
+/// highest centroid `centroid_z`).
+pub(crate) fn facet_bands(centroid_z: &[f64], nb: usize) -> Vec<u8> {
+    let nb = nb.clamp(1, 255);
+    let (z0, z1) = centroid_z
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &z| {
+            (a.min(z), b.max(z))
+        });
+    centroid_z.iter().map(|&z| band_of(z, z0, z1, nb)).collect()
 }
 
 /// The height band (of `nb` between `z0` and `z1`) of a facet's centroid.
@@ -267,12 +283,7 @@ impl SeenTable {
         progress: &Progress,
     ) -> Self {
         let nb = bands.clamp(1, 255);
-        let (z0, z1) = centroid_z
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &z| {
-                (a.min(z), b.max(z))
-            });
-        let band: Vec<u8> = centroid_z.iter().map(|&z| band_of(z, z0, z1, nb)).collect();
+        let band = facet_bands(centroid_z, nb);
         let np = grid.n_phi;
         // One bar over the directions cast: the first round's (every `ratio`-th azimuth), then
         // each refining round's added as it starts (where the seen sums are not linear).
@@ -416,6 +427,54 @@ impl SeenTable {
                     *l += u * (dot(wi, e) / facing).clamp(0.0, 1.0);
                 }
             }
+        }
+    }
+
+    /// The interpolation weights of `w` on this grid, for [`Self::band_fractions`].
+    pub(crate) fn node_weights(&self, w: Vec3) -> Vec<(usize, f64)> {
+        weights(&self.grid, w).collect()
+    }
+
+    /// Per height band of cluster `c`, its jointly visible fraction at `(wi, wo)` in the band
+    /// model (the fraction of its facets facing `wo` that `wo` sees, times the fraction of
+    /// those facing `wi` that `wi` lights, each interpolated on this grid with the weights
+    /// `fa` of `wi` and `fb` of `wo`, [`Self::node_weights`]), into `out`; and per band the
+    /// projected area of its facets facing `wo`.
+    pub(crate) fn band_fractions(
+        &self,
+        (wi, fa): (Vec3, &[(usize, f64)]),
+        (wo, fb): (Vec3, &[(usize, f64)]),
+        c: usize,
+        out: &mut Vec<(f64, f64)>,
+    ) {
+        out.clear();
+        out.resize(self.bands, (0.0, 0.0));
+        let at = |b: usize, h: usize| &self.bands_at(b)[(c * self.bands + h) * BAND_STRIDE..];
+        let mut seen = vec![0.0; self.bands];
+        for &(b, v) in fb {
+            for (h, (s, o)) in seen.iter_mut().zip(out.iter_mut()).enumerate() {
+                let e = at(b, h);
+                *s += v * dot(wo, e);
+                o.1 += v * dot(wo, &e[3..]);
+            }
+        }
+        let mut lit = vec![0.0; self.bands];
+        for &(a, u) in fa {
+            for (h, l) in lit.iter_mut().enumerate() {
+                let e = at(a, h);
+                let facing = dot(wi, &e[3..]);
+                if facing > 0.0 {
+                    *l += u * (dot(wi, e) / facing).clamp(0.0, 1.0);
+                }
+            }
+        }
+        for ((o, s), l) in out.iter_mut().zip(&seen).zip(&lit) {
+            let sigma = if o.1 > 0.0 {
+                (s / o.1).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            o.0 = sigma * l;
         }
     }
 
