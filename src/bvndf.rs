@@ -915,13 +915,13 @@ const BAND_FIT_ROUNDS: usize = 16;
 /// the table closest to uniform (iterative proportional fitting, a product of a factor per part
 /// and one per band) whose seen areas towards `wo` add up, per part, to what the sub-lobes' fit
 /// gives (`parts`: its fractions, or the cluster's `whole` fraction for one part) and, per band,
-/// to what the band model gives (`bands`: per band, its jointly visible fraction and its facets'
-/// projected area facing `wo`), both scaled to the cluster's seen area `seen`; each at most 1.
+/// to what the band model gives (`bands`: per band, its jointly visible fraction), both scaled
+/// to the cluster's seen area `seen`; each at most 1.
 /// `pb`: the facets' `Σ A n` per (part, band). Empty when a margin is empty.
 fn share_by_bands(
     pb: &[Vec3],
     parts: &[f64],
-    bands: &[(f64, f64)],
+    bands: &[f64],
     seen: f64,
     whole: f64,
     wo: Vec3,
@@ -940,7 +940,7 @@ fn share_by_bands(
     };
     let (Some(pt), Some(bt)) = (
         scaled((0..np).map(|p| parts[p] * row(p)).collect()),
-        scaled((0..nb).map(|h| bands[h].0 * col(h)).collect()),
+        scaled((0..nb).map(|h| bands[h] * col(h)).collect()),
     ) else {
         return Vec::new();
     };
@@ -1119,7 +1119,7 @@ mod tests {
             .map(|i| wo * (0.02 + 0.01 * ((i * 7) % 5) as f64))
             .collect();
         let parts = [0.6, 0.3, 0.45];
-        let bands = [(0.2, 0.0), (0.4, 0.0), (0.5, 0.0), (0.7, 0.0)];
+        let bands = [0.2, 0.4, 0.5, 0.7];
         let seen = 0.05;
         let r = share_by_bands(&pb, &parts, &bands, seen, 0.4, wo);
         assert_eq!(r.len(), 12);
@@ -1127,7 +1127,7 @@ mod tests {
         let row = |p: usize| (0..4).map(|h| area(p * 4 + h)).sum::<f64>();
         let col = |h: usize| (0..3).map(|p| area(p * 4 + h)).sum::<f64>();
         let pt: Vec<f64> = (0..3).map(|p| parts[p] * row(p)).collect();
-        let bt: Vec<f64> = (0..4).map(|h| bands[h].0 * col(h)).collect();
+        let bt: Vec<f64> = (0..4).map(|h| bands[h] * col(h)).collect();
         let (ps, bs): (f64, f64) = (pt.iter().sum(), bt.iter().sum());
         assert!(r.iter().all(|x| (0.0..1.0).contains(x)), "{r:?}");
         let total: f64 = (0..12).map(|i| r[i] * area(i)).sum();
@@ -1142,6 +1142,6 @@ mod tests {
             assert!((got - bt[h] * seen / bs).abs() < 1e-5 * seen, "band {h}");
         }
         // A margin that is all zero leaves the table empty (by part only).
-        assert!(share_by_bands(&pb, &parts, &[(0.0, 0.0); 4], seen, 0.4, wo).is_empty());
+        assert!(share_by_bands(&pb, &parts, &[0.0; 4], seen, 0.4, wo).is_empty());
     }
 }

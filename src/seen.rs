@@ -438,24 +438,23 @@ impl SeenTable {
     /// Per height band of cluster `c`, its jointly visible fraction at `(wi, wo)` in the band
     /// model (the fraction of its facets facing `wo` that `wo` sees, times the fraction of
     /// those facing `wi` that `wi` lights, each interpolated on this grid with the weights
-    /// `fa` of `wi` and `fb` of `wo`, [`Self::node_weights`]), into `out`; and per band the
-    /// projected area of its facets facing `wo`.
+    /// `fa` of `wi` and `fb` of `wo`, [`Self::node_weights`]), into `out`.
     pub(crate) fn band_fractions(
         &self,
         (wi, fa): (Vec3, &[(usize, f64)]),
         (wo, fb): (Vec3, &[(usize, f64)]),
         c: usize,
-        out: &mut Vec<(f64, f64)>,
+        out: &mut Vec<f64>,
     ) {
         out.clear();
-        out.resize(self.bands, (0.0, 0.0));
+        out.resize(self.bands, 0.0);
         let at = |b: usize, h: usize| &self.bands_at(b)[(c * self.bands + h) * BAND_STRIDE..];
-        let mut seen = vec![0.0; self.bands];
+        let (mut seen, mut facing) = (vec![0.0; self.bands], vec![0.0; self.bands]);
         for &(b, v) in fb {
-            for (h, (s, o)) in seen.iter_mut().zip(out.iter_mut()).enumerate() {
+            for (h, (s, f)) in seen.iter_mut().zip(facing.iter_mut()).enumerate() {
                 let e = at(b, h);
                 *s += v * dot(wo, e);
-                o.1 += v * dot(wo, &e[3..]);
+                *f += v * dot(wo, &e[3..]);
             }
         }
         let mut lit = vec![0.0; self.bands];
@@ -468,13 +467,13 @@ impl SeenTable {
                 }
             }
         }
-        for ((o, s), l) in out.iter_mut().zip(&seen).zip(&lit) {
-            let sigma = if o.1 > 0.0 {
-                (s / o.1).clamp(0.0, 1.0)
+        for (((o, s), f), l) in out.iter_mut().zip(&seen).zip(&facing).zip(&lit) {
+            let sigma = if *f > 0.0 {
+                (s / f).clamp(0.0, 1.0)
             } else {
                 0.0
             };
-            o.0 = sigma * l;
+            *o = sigma * l;
         }
     }
 
