@@ -602,12 +602,9 @@ impl CompactBvndf {
             (Some(t), Some((fa, fb))) if self.bands > 1 && whole > 0.0 => {
                 let mut bands = Vec::new();
                 t.band_fractions((wi, fa), (wo, fb), c, &mut bands);
-                let fp: Vec<f64> = if parts.is_empty() {
-                    vec![whole]
-                } else {
-                    parts.clone()
-                };
-                share_by_bands(&self.part_bands[c], &fp, &bands, seen, whole, wo)
+                let one = [whole];
+                let fp: &[f64] = if parts.is_empty() { &one } else { &parts };
+                share_by_bands(&self.part_bands[c], fp, &bands, seen, whole, wo)
             }
             _ => Vec::new(),
         };
