@@ -8,7 +8,9 @@
 //! lobe is non-zero only for normals within its support radius of the half vector
 //! ([`crate::material::Lobe::support_radius`]), so only those facets are visited: the normals are
 //! binned on a square grid over `(n_x, n_y)` (a cap of angle `r` around `h` lies within `r` of
-//! `(h_x, h_y)` there), and facets of one cluster with the same normal are merged.
+//! `(h_x, h_y)` there), and facets of one cluster with the same normal, sub-lobe part and height
+//! band are merged. Each entry keeps its cluster, part and band: the facet sum takes a facet's
+//! visibility from them ([`crate::bvndf::CompactBvndf::sharp_fbar`]).
 
 use crate::frame::Vec3;
 
