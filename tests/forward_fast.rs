@@ -93,8 +93,10 @@ fn sharp_lobes_on_curved_surfaces_are_summed_over_facets() {
         ("table", &fast::fbar(&geo, &table, &pairs)),
         &exact,
     );
+    // Deterministic (seeded points): 8.95 % with each facet seen as its sub-lobe part, 9.82 %
+    // as its whole cluster (docs/forward-model.md), so a return to the cluster's fraction fails.
     assert!(
-        e_facets < 0.15 && e_facets < 0.5 * e_table,
+        e_facets < 0.093 && e_facets < 0.5 * e_table,
         "{e_facets} vs {e_table}"
     );
 }
