@@ -46,7 +46,8 @@
 //! occlusion by other geometry only; the estimate stays unbiased.
 
 use crate::dirgrid::DirGrid;
-use crate::facetindex::FacetIndex;
+use crate::facetindex::{FacetIndex, Near};
+use crate::facetrays::FacetRays;
 use crate::frame::Vec3;
 use crate::heightfield::Heightfield;
 use crate::jointvis::{joint_moments, GRAZING_DEG};
@@ -198,6 +199,9 @@ pub struct CompactBvndf {
     pub part_bands: Vec<Vec<Vec3>>,
     /// Height bands of `part_bands` (the fine seen table's; 1 without it).
     pub bands: usize,
+    /// The heightfield itself, whose facets the sharp-lobe facet sum tests by rays
+    /// ([`Self::sharp_fbar`], [`FacetRays`]).
+    pub relief: Heightfield,
 }
 
 /// The index of the node pair `(a, b)` (either order) in the table's pair order.
@@ -434,11 +438,18 @@ impl CompactBvndf {
             seen: seen_table,
             part_bands,
             bands,
+            relief: hf.clone(),
         }
     }
 
+    /// The geometry's heightfield prepared for the sharp-lobe facet sum's rays
+    /// ([`Self::sharp_fbar`]).
+    pub fn facet_rays(&self) -> FacetRays<'_> {
+        FacetRays::new(&self.relief)
+    }
+
     /// Bytes of the stored representation (the table, the centres, the sub-lobes, the facet
-    /// index and the fine seen table).
+    /// index, the fine seen table and the heightfield).
     pub fn bytes(&self) -> usize {
         self.table.len() * 4
             + self.seen.as_ref().map_or(0, SeenTable::bytes)
@@ -446,6 +457,7 @@ impl CompactBvndf {
             + self.shapes.iter().map(Shape::bytes).sum::<usize>()
             + self.facets.bytes()
             + self.part_bands.iter().map(|v| v.len() * 24).sum::<usize>()
+            + self.relief.samples().len() * 8
     }
 
     #[inline]
@@ -492,17 +504,27 @@ impl CompactBvndf {
     /// The part of `fbar(wi, wo)` that the glossy lobes of `sharp` (too narrow for the
     /// prefiltered table) add on the curved clusters, summed over their facets within `radius`
     /// of the half vector ([`FacetIndex::near`]):
-    /// `Σ_f ρ_f A_f (n_f·wo)+ (n_f·wi)+ f_sharp(n_f, wi, wo) / a_v(wo)`, where `ρ_f` is the
-    /// jointly visible fraction of the facet's sub-lobe part and height band
-    /// ([`Self::visible_fractions`]: its cluster's tabulated visible projected area towards
-    /// `wo`, shared among the parts as the sub-lobes' fit shares it and among the bands as the
-    /// fine seen table's band model does): the facet sum of the exact evaluator, with each
-    /// facet's visibility taken as its part's at its height (on rough surfaces under sharp
-    /// lobes, up to 11 points nearer the exact method than its cluster's,
-    /// docs/forward-model.md).
+    /// `Σ_f ρ_f A_f (n_f·wo)+ (n_f·wi)+ f_sharp(n_f, wi, wo) / a_v(wo)`, the exact evaluator's
+    /// facet sum, with `ρ_f` the facet's jointly visible fraction:
+    ///
+    /// * where those facets have few points between them, tested by rays from `rays` (the
+    ///   geometry's heightfield, [`Self::relief`]; [`FacetRays::visible_sum`]);
+    /// * otherwise from the model, the fraction of the facet's sub-lobe part and height band
+    ///   ([`Self::visible_fractions`]: its cluster's tabulated visible projected area towards
+    ///   `wo`, shared among the parts as the sub-lobes' fit shares it and among the bands as the
+    ///   fine seen table's band model does), corrected by the rays at a sample of the facets.
+    ///
+    /// (docs/forward-model.md, "Few facets under a sharp lobe: tested by rays".)
     /// Planar clusters (and curved ones whose normals all but coincide) are not included: their
     /// lobe is a delta, which the table's material answers at its centre, sharp lobes included.
-    pub fn sharp_fbar(&self, wi: Vec3, wo: Vec3, sharp: &Material, radius: f64) -> f64 {
+    pub fn sharp_fbar(
+        &self,
+        wi: Vec3,
+        wo: Vec3,
+        sharp: &Material,
+        radius: f64,
+        rays: &FacetRays,
+    ) -> f64 {
         if wi.z <= 0.0 || wo.z <= 0.0 || sharp.lobes.is_empty() || self.facets.is_empty() {
             return 0.0;
         }
@@ -516,31 +538,40 @@ impl CompactBvndf {
             return 0.0;
         }
         let h = (wi + wo).normalized();
-        // The fine seen table's weights of both ends, for the height bands (found once).
+        // Each facing entry with its term `A (n·wo) (n·wi) f_sharp`.
+        let mut near = Vec::new();
+        self.facets.near(h, radius, |e| {
+            let (ci, co) = (e.n.dot(wi), e.n.dot(wo));
+            if ci <= 0.0 || co <= 0.0 {
+                return;
+            }
+            let t = e.area * co * ci * sharp.eval(e.n, wi, wo);
+            if t > 0.0 {
+                near.push((t, e));
+            }
+        });
+        if near.is_empty() {
+            return 0.0;
+        }
+        let ends = rays.ends(wi, wo);
         let fine = self
             .seen
             .as_ref()
             .filter(|_| self.bands > 1)
             .map(|t| (t.node_weights(wi), t.node_weights(wo)));
-        let mut rho: Vec<Option<Visible>> = vec![None; self.clusters];
-        let mut s = 0.0;
-        self.facets.near(h, radius, |n, a, c, part, band| {
-            let (ci, co) = (n.dot(wi), n.dot(wo));
-            if ci <= 0.0 || co <= 0.0 {
-                return;
-            }
-            let vis = rho[c].get_or_insert_with(|| {
-                let g = blend(&wa, &wb, |na, b| self.entry(na, b, c));
-                self.visible_fractions(c, (wi, wo), &g, correction.as_ref(), fine.as_ref())
-            });
-            let r = vis.of(part, band);
-            if r > 0.0 {
-                s += r * a * co * ci * sharp.eval(n, wi, wo);
-            }
+        let mut cache: Vec<Option<Visible>> = vec![None; self.clusters];
+        let s = rays.visible_sum(&near, &ends, |e: &Near| {
+            let c = e.cluster;
+            cache[c]
+                .get_or_insert_with(|| {
+                    let g = blend(&wa, &wb, |na, b| self.entry(na, b, c));
+                    self.visible_fractions(c, (wi, wo), &g, correction.as_ref(), fine.as_ref())
+                })
+                .of(e.part, e.band)
         });
         let v = s / diag;
         if v.is_finite() {
-            v
+            v.max(0.0)
         } else {
             0.0
         }

@@ -30,6 +30,25 @@ pub struct FacetIndex {
     part: Vec<u16>,
     /// Each entry's height band ([`crate::seen::facet_bands`]; 0 without bands).
     band: Vec<u8>,
+    /// `ids[first[e]..first[e + 1]]`: the facets entry `e` merges (indices into
+    /// [`crate::heightfield::Heightfield::facets`]).
+    first: Vec<u32>,
+    ids: Vec<u32>,
+}
+
+/// One entry of the index as [`FacetIndex::near`] gives it: facets of one cluster with the same
+/// normal, sub-lobe part and height band.
+#[derive(Debug, Clone, Copy)]
+pub struct Near<'a> {
+    pub n: Vec3,
+    /// Their summed area, in units of the base area.
+    pub area: f64,
+    pub cluster: usize,
+    pub part: u16,
+    pub band: u8,
+    /// The facets (indices into [`crate::heightfield::Heightfield::facets`]), ascending. On a
+    /// heightfield's grid facets of one normal have one area, `area / facets.len()` each.
+    pub facets: &'a [u32],
 }
 
 fn cell_of(v: f64) -> usize {
@@ -66,6 +85,8 @@ impl FacetIndex {
             cluster: Vec::new(),
             part: Vec::new(),
             band: Vec::new(),
+            first: Vec::new(),
+            ids: Vec::with_capacity(idx.len()),
         };
         let mut counts = vec![0u32; CELLS * CELLS];
         for &i in &idx {
@@ -79,6 +100,7 @@ impl FacetIndex {
                     *a += areas[i];
                 }
             } else {
+                out.first.push(out.ids.len() as u32);
                 out.normals.push(n);
                 out.areas.push(areas[i]);
                 out.cluster.push(k);
@@ -86,7 +108,9 @@ impl FacetIndex {
                 out.band.push(band[i]);
                 counts[key(&n)] += 1;
             }
+            out.ids.push(i as u32);
         }
+        out.first.push(out.ids.len() as u32);
         for (c, n) in counts.iter().enumerate() {
             out.start[c + 1] = out.start[c] + n;
         }
@@ -104,12 +128,14 @@ impl FacetIndex {
 
     /// Bytes held.
     pub fn bytes(&self) -> usize {
-        self.start.len() * 4 + self.normals.len() * (24 + 8 + 2 + 2 + 1)
+        self.start.len() * 4
+            + self.normals.len() * (24 + 8 + 2 + 2 + 1 + 4)
+            + self.ids.len() * 4
+            + 4
     }
 
-    /// Call `f(normal, area, cluster, part, band)` for every facet whose normal is within
-    /// `radius` radians of the unit vector `h`.
-    pub fn near(&self, h: Vec3, radius: f64, mut f: impl FnMut(Vec3, f64, usize, u16, u8)) {
+    /// Call `f` with every entry whose normal is within `radius` radians of the unit vector `h`.
+    pub fn near<'s>(&'s self, h: Vec3, radius: f64, mut f: impl FnMut(Near<'s>)) {
         let cos_r = radius.cos();
         let (x0, x1) = (cell_of(h.x - radius), cell_of(h.x + radius));
         let (y0, y1) = (cell_of(h.y - radius), cell_of(h.y + radius));
@@ -122,13 +148,14 @@ impl FacetIndex {
             for i in s..e {
                 let n = self.normals[i];
                 if n.dot(h) >= cos_r {
-                    f(
+                    f(Near {
                         n,
-                        self.areas[i],
-                        self.cluster[i] as usize,
-                        self.part[i],
-                        self.band[i],
-                    );
+                        area: self.areas[i],
+                        cluster: self.cluster[i] as usize,
+                        part: self.part[i],
+                        band: self.band[i],
+                        facets: &self.ids[self.first[i] as usize..self.first[i + 1] as usize],
+                    });
                 }
             }
         }
@@ -163,9 +190,13 @@ mod tests {
         let h = Vec3::new(0.2, 0.1, 1.0).normalized();
         for r in [0.0, 0.03, 0.1, 0.5] {
             let mut got = Vec::new();
-            ix.near(h, r, |n, a, _, _, _| {
-                assert_eq!(a, 1.0);
-                got.push(n);
+            ix.near(h, r, |e| {
+                assert_eq!(e.area, 1.0);
+                // Each entry merges the two facets of its normal, in order.
+                assert_eq!(e.facets.len(), 2);
+                assert_eq!(e.facets[1], e.facets[0] + 1);
+                assert_eq!(normals[e.facets[0] as usize], e.n);
+                got.push(e.n);
             });
             let want = (0..normals.len())
                 .step_by(2)

@@ -5,6 +5,7 @@
 //! facets.
 
 use crate::bvndf::{CompactBvndf, LobeSource};
+use crate::facetrays::FacetRays;
 use crate::frame::DirPair;
 use crate::prefilter::{prepare, PrefilterConfig, Prefiltered, PreparedLobe};
 use crate::vmf::Vmf;
@@ -45,13 +46,15 @@ pub const FACET_WIDTH: f64 = 0.06;
 /// shared among the threads in blocks of [`PAIR_BLOCK`]; each pair's value is computed alone,
 /// so the result does not depend on the number of threads.
 pub fn fbar_with_facets(geo: &CompactBvndf, mat: &Prefiltered, pairs: &[DirPair]) -> Vec<f64> {
+    // The facets' rays are prepared only for a material with sharp lobes.
+    let rays = mat.sharp().map(|_| geo.facet_rays());
     pairs
         .par_chunks(PAIR_BLOCK)
         .flat_map_iter(|block| {
             let mut scratch = Vec::with_capacity(geo.clusters());
             block
                 .iter()
-                .map(|p| fbar_one_with_facets(geo, mat, p, &mut scratch))
+                .map(|p| fbar_one_with_facets(geo, mat, rays.as_ref(), p, &mut scratch))
                 .collect::<Vec<_>>()
         })
         .collect()
@@ -61,17 +64,22 @@ pub fn fbar_with_facets(geo: &CompactBvndf, mat: &Prefiltered, pairs: &[DirPair]
 /// microseconds, so a block is long enough to outweigh a task's overhead.
 pub const PAIR_BLOCK: usize = 32;
 
-/// [`fbar_with_facets`] at one pair, reusing `scratch` for the lobes.
+/// [`fbar_with_facets`] at one pair, reusing `scratch` for the lobes. `rays`: the geometry's
+/// facets prepared for rays ([`CompactBvndf::facet_rays`]), needed when `mat` has sharp lobes
+/// (without them its sharp lobes add nothing).
 pub fn fbar_one_with_facets(
     geo: &CompactBvndf,
     mat: &Prefiltered,
+    rays: Option<&FacetRays>,
     p: &DirPair,
     scratch: &mut Vec<(f64, Vmf)>,
 ) -> f64 {
     let v = fbar_one(geo, mat, p, scratch);
-    match mat.sharp() {
-        Some((sharp, radius)) => clean(v + geo.sharp_fbar(p.wi, p.wo, sharp, radius)),
-        None => v,
+    match (mat.sharp(), rays) {
+        (Some((sharp, radius)), Some(rays)) => {
+            clean(v + geo.sharp_fbar(p.wi, p.wo, sharp, radius, rays))
+        }
+        _ => v,
     }
 }
 

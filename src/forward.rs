@@ -284,11 +284,15 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
                     match pre.sharp() {
                         Some((m, r)) => format!(
                             "; its lobes narrower than {} rad ({}) are summed over the {} facet \
-                             normals of the curved clusters within {:.3} rad of each half vector",
+                             normals of the curved clusters within {:.3} rad of each half vector, \
+                             those facets' visibility tested by rays (all of them up to {} points \
+                             per pair, else {} of them correcting the visibility model)",
                             crate::fast::FACET_WIDTH,
                             m.spec(),
                             geo.facets.len(),
-                            r
+                            r,
+                            crate::facetrays::DIRECT_POINTS,
+                            crate::facetrays::DIRECT_POINTS
                         ),
                         None => String::new(),
                     }

@@ -36,11 +36,17 @@ impl Facet {
     /// The centroids of the `s × s` subdivision of the triangle into congruent triangles: `s²`
     /// points, each standing for `area / s²`.
     pub fn stratified_points(&self, s: usize) -> Vec<Vec3> {
+        let mut out = Vec::with_capacity(s.max(1).pow(2));
+        self.stratified_points_into(s, &mut out);
+        out
+    }
+
+    /// [`Self::stratified_points`] appended to `out`.
+    pub fn stratified_points_into(&self, s: usize, out: &mut Vec<Vec3>) {
         let s = s.max(1);
         let inv = 1.0 / s as f64;
         let [a, b, c] = self.v;
         let (e1, e2) = (b - a, c - a);
-        let mut out = Vec::with_capacity(s * s);
         for i in 0..s {
             for j in 0..s - i {
                 out.push(
@@ -54,7 +60,6 @@ impl Facet {
                 }
             }
         }
-        out
     }
 }
 
@@ -225,6 +230,12 @@ impl Heightfield {
             }
         };
         [mk(v00, v10, v11), mk(v00, v11, v01)]
+    }
+
+    /// Facet `i` of [`Self::facets`] alone.
+    pub fn facet(&self, i: usize) -> Facet {
+        let cell = i / 2;
+        self.cell_facets(cell % self.w, cell / self.w)[i % 2]
     }
 
     /// Every facet of one period, in the order cell `(x, y)` row-major, lower-right then upper-left.

@@ -33,6 +33,7 @@ pub mod bvndf;
 pub mod dirgrid;
 pub mod exact;
 pub mod facetindex;
+pub mod facetrays;
 pub mod fast;
 pub mod gamma;
 pub mod jointvis;

@@ -105,7 +105,8 @@ fn pow2_mask(n: i64) -> i64 {
 
 /// A periodic heightfield prepared for visibility queries.
 pub struct Visibility<'a> {
-    hf: &'a Heightfield,
+    /// Borrowed ([`Visibility::new`]) or owned ([`Visibility::owned`]).
+    hf: std::borrow::Cow<'a, Heightfield>,
     w: i64,
     h: i64,
     zmax: f64,
@@ -133,8 +134,20 @@ pub struct Visibility<'a> {
     bhmask: i64,
 }
 
+impl Visibility<'static> {
+    /// The same as [`Visibility::new`], holding its heightfield (for a model that outlives the
+    /// heightfield it was built from).
+    pub fn owned(hf: Heightfield) -> Self {
+        Visibility::prepare(std::borrow::Cow::Owned(hf))
+    }
+}
+
 impl<'a> Visibility<'a> {
     pub fn new(hf: &'a Heightfield) -> Self {
+        Visibility::prepare(std::borrow::Cow::Borrowed(hf))
+    }
+
+    fn prepare(hf: std::borrow::Cow<'a, Heightfield>) -> Self {
         let (lo, hi) = hf.min_max();
         let htol = 1e-10 * (1.0 + (hi - lo).abs()) + 64.0 * f64::EPSILON * hi.abs().max(lo.abs());
         let (w, h) = (hf.width() as i64, hf.height() as i64);
@@ -272,7 +285,7 @@ impl<'a> Visibility<'a> {
     }
 
     pub fn heightfield(&self) -> &Heightfield {
-        self.hf
+        &self.hf
     }
 
     /// The horizon slope of point `(px, py, pz)` (on the surface) along unit azimuth `(dx, dy)`:

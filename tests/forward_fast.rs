@@ -74,7 +74,7 @@ fn sub_lobes_follow_a_sharp_material_on_a_rough_surface() {
 /// A lobe far sharper than the spacing of a triangulated bump's facet normals (GGX 0.01): the
 /// exact `fbar` is a sum of spikes, one per facet facing the half vector, which the table's
 /// smooth lobes average away; summed over the facets near the half vector
-/// ([`fast::fbar_with_facets`]) they are kept. The reference takes 4×4 rays per cell: at the
+/// ([`fast::fbar_with_facets`]) they are kept, each facet's visibility tested by rays. The reference takes 4×4 rays per cell: at the
 /// default 2×2 the exact method's own noise on these spikes is about 12 % (against 8×8) on this
 /// subset of pairs, as large as the fast method's error.
 #[test]
@@ -93,10 +93,11 @@ fn sharp_lobes_on_curved_surfaces_are_summed_over_facets() {
         ("table", &fast::fbar(&geo, &table, &pairs)),
         &exact,
     );
-    // Deterministic (seeded points): 8.95 % with each facet seen as its sub-lobe part, 9.82 %
-    // as its whole cluster (docs/forward-model.md), so a return to the cluster's fraction fails.
+    // Deterministic (seeded points): 2.40 % with the few facets near each half vector tested by
+    // rays, 8.95 % with each facet seen as its sub-lobe part, 9.82 % as its whole cluster
+    // (docs/forward-model.md), so a return to either model fails.
     assert!(
-        e_facets < 0.093 && e_facets < 0.5 * e_table,
+        e_facets < 0.04 && e_facets < 0.5 * e_table,
         "{e_facets} vs {e_table}"
     );
 }

@@ -98,12 +98,17 @@ impl Look {
         scale: f64,
         colour: Option<[f64; 3]>,
     ) -> Self {
+        // The facets' rays, prepared once, only for a material with sharp lobes.
+        let rays = pre
+            .sharp()
+            .map(|_| crate::facetrays::FacetRays::owned(geo.relief.clone()));
         Look::from_fn(
             name,
             move |wi: Vec3, wo: Vec3| {
                 let mut scratch = Vec::with_capacity(geo.clusters);
                 let p = DirPair { wi, wo };
-                scale * crate::fast::fbar_one_with_facets(&geo, &pre, &p, &mut scratch)
+                scale
+                    * crate::fast::fbar_one_with_facets(&geo, &pre, rays.as_ref(), &p, &mut scratch)
             },
             colour,
         )
