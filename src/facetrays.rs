@@ -21,7 +21,7 @@ use crate::visibility::{Direction, Visibility};
 /// Most facet points [`FacetRays::visible_sum`] tests at one pair: every facet when they have
 /// no more points between them, else this many facets' centroids. The cost is up to two rays per
 /// point (2 × 512 per pair: evaluating 490 pairs of a sharp GGX 0.03 lobe on a 64² bumps map
-/// takes about 100 ms instead of 35 ms); with 64, 128 and 256 samples a broad sharp lobe's
+/// takes about 100 ms instead of 37 ms); with 64, 128 and 256 samples a broad sharp lobe's
 /// error went 5.6, 3.4 and 2.6 % against 1.4 % at 512 (docs/forward-model.md).
 pub const DIRECT_POINTS: usize = 512;
 

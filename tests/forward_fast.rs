@@ -93,11 +93,12 @@ fn sharp_lobes_on_curved_surfaces_are_summed_over_facets() {
         ("table", &fast::fbar(&geo, &table, &pairs)),
         &exact,
     );
-    // Deterministic (seeded points): 2.40 % with the few facets near each half vector tested by
-    // rays, 8.95 % with each facet seen as its sub-lobe part, 9.82 % as its whole cluster
+    // Deterministic (seeded points): 1.42 % with the few facets near each half vector tested by
+    // rays (2.40 % when their sum was divided by the table's `a_v(wo)` instead of `cos(theta_o)`),
+    // 8.95 % with each facet seen as its sub-lobe part, 9.82 % as its whole cluster
     // (docs/forward-model.md), so a return to either model fails.
     assert!(
-        e_facets < 0.04 && e_facets < 0.5 * e_table,
+        e_facets < 0.03 && e_facets < 0.5 * e_table,
         "{e_facets} vs {e_table}"
     );
 }
