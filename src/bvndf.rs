@@ -508,7 +508,7 @@ impl CompactBvndf {
     /// facet sum (`a_v(wo) = A_base cos(theta_o)`, the identity), with `ρ_f` the facet's jointly
     /// visible fraction:
     ///
-    /// * where those facets have few points between them, tested by rays from `rays` (the
+    /// * where those facets are few, tested by rays from `rays` (the
     ///   geometry's heightfield, [`Self::relief`]; [`FacetRays::visible_sum`]);
     /// * otherwise from the model, the fraction of the facet's sub-lobe part and height band
     ///   ([`Self::visible_fractions`]: its cluster's tabulated visible projected area towards

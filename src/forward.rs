@@ -285,7 +285,7 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
                         Some((m, r)) => format!(
                             "; its lobes narrower than {} rad ({}) are summed over the {} facet \
                              normals of the curved clusters within {:.3} rad of each half vector, \
-                             those facets' visibility tested by rays (all of them up to {} points \
+                             those facets' visibility tested by rays (all of them up to {} facets \
                              per pair, else {} of them correcting the visibility model)",
                             crate::fast::FACET_WIDTH,
                             m.spec(),
