@@ -65,8 +65,9 @@ pub fn fbar_with_facets(geo: &CompactBvndf, mat: &Prefiltered, pairs: &[DirPair]
 pub const PAIR_BLOCK: usize = 32;
 
 /// [`fbar_with_facets`] at one pair, reusing `scratch` for the lobes. `rays`: the geometry's
-/// facets prepared for rays ([`CompactBvndf::facet_rays`]), needed when `mat` has sharp lobes
-/// (without them its sharp lobes add nothing).
+/// facets prepared for rays ([`CompactBvndf::facet_rays`]) once for many pairs, read when `mat`
+/// has sharp lobes; `None` prepares them at this call (a pass over the heightfield, about
+/// 0.1 ms for 128²).
 pub fn fbar_one_with_facets(
     geo: &CompactBvndf,
     mat: &Prefiltered,
@@ -75,12 +76,18 @@ pub fn fbar_one_with_facets(
     scratch: &mut Vec<(f64, Vmf)>,
 ) -> f64 {
     let v = fbar_one(geo, mat, p, scratch);
-    match (mat.sharp(), rays) {
-        (Some((sharp, radius)), Some(rays)) => {
-            clean(v + geo.sharp_fbar(p.wi, p.wo, sharp, radius, rays))
+    let Some((sharp, radius)) = mat.sharp() else {
+        return v;
+    };
+    let here;
+    let rays = match rays {
+        Some(r) => r,
+        None => {
+            here = geo.facet_rays();
+            &here
         }
-        _ => v,
-    }
+    };
+    clean(v + geo.sharp_fbar(p.wi, p.wo, sharp, radius, rays))
 }
 
 /// `fbar` at every pair (a table built with [`Prefiltered::build`]; for one built with
