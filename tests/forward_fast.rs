@@ -103,6 +103,15 @@ fn sharp_lobes_on_curved_surfaces_are_summed_over_facets() {
         e_facets < 0.012 && e_facets < 0.5 * e_table,
         "{e_facets} vs {e_table}"
     );
+    // A caller without prepared rays gets the same values, the rays prepared at the call.
+    let rays = geo.facet_rays();
+    let mut scratch = Vec::new();
+    for p in pairs.iter().step_by(10) {
+        assert_eq!(
+            fast::fbar_one_with_facets(&geo, &split, None, p, &mut scratch),
+            fast::fbar_one_with_facets(&geo, &split, Some(&rays), p, &mut scratch)
+        );
+    }
 }
 
 #[test]
