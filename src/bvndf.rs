@@ -402,11 +402,7 @@ impl CompactBvndf {
             .map(|sh| vec![Vec3::default(); sh.parts.len().max(1) * bands])
             .collect();
         for i in 0..facets.len() {
-            let p = if part[i] == crate::sublobes::NO_PART {
-                0
-            } else {
-                part[i] as usize
-            };
+            let p = crate::sublobes::part_row(part[i]);
             let e = &mut part_bands[assign[i] as usize][p * bands + band[i] as usize];
             *e = *e + normals[i] * areas[i];
         }
@@ -549,7 +545,6 @@ impl CompactBvndf {
         // The visibility model, set up only where the rays ask for it: the pair table's and
         // the fine seen table's weights and the correction, then each cluster's fractions.
         let mut model: Option<ModelAt> = None;
-        let mut cache: Vec<Option<Visible>> = vec![None; self.clusters];
         let s = rays.visible_sum(&near, &ends, |e: &Near| {
             let m = model.get_or_insert_with(|| {
                 let (wa, wb) = (self.grid.weights(wi), self.grid.weights(wo));
@@ -564,13 +559,15 @@ impl CompactBvndf {
                     wb,
                     correction,
                     fine,
+                    clusters: vec![None; self.clusters],
                 }
             });
             let c = e.cluster;
-            cache[c]
+            let (wa, wb, correction, fine) = (&m.wa, &m.wb, &m.correction, &m.fine);
+            m.clusters[c]
                 .get_or_insert_with(|| {
-                    let g = blend(&m.wa, &m.wb, |na, b| self.entry(na, b, c));
-                    self.visible_fractions(c, (wi, wo), &g, m.correction.as_ref(), m.fine.as_ref())
+                    let g = blend(wa, wb, |na, b| self.entry(na, b, c));
+                    self.visible_fractions(c, (wi, wo), &g, correction.as_ref(), fine.as_ref())
                 })
                 .of(e.part, e.band)
         });
@@ -915,12 +912,14 @@ type FineWeights = (Vec<(usize, f64)>, Vec<(usize, f64)>);
 
 /// What the sharp-lobe facet sum's visibility model needs at one pair
 /// ([`CompactBvndf::sharp_fbar`]): the pair table's interpolation weights of `wi` and `wo`,
-/// the fine seen table's correction and its own weights of both ends.
+/// the fine seen table's correction and its own weights of both ends, and each cluster's
+/// fractions once found.
 struct ModelAt {
     wa: [(usize, f64); 4],
     wb: [(usize, f64); 4],
     correction: Option<Correction>,
     fine: Option<FineWeights>,
+    clusters: Vec<Option<Visible>>,
 }
 
 /// The jointly visible fraction of one cluster's facets at a pair
@@ -941,11 +940,7 @@ impl Visible {
     /// band `band`.
     #[inline]
     fn of(&self, part: u16, band: u8) -> f64 {
-        let p = if part == crate::sublobes::NO_PART {
-            0
-        } else {
-            part as usize
-        };
+        let p = crate::sublobes::part_row(part);
         if let Some(&r) = self.table.get(p * self.bands + band as usize) {
             return r;
         }

@@ -286,6 +286,17 @@ pub(crate) fn cluster_shapes(
 /// The part of a facet whose cluster has no sub-lobes.
 pub(crate) const NO_PART: u16 = u16::MAX;
 
+/// The row of part `part` in a per-part table of its cluster (`[part · bands + band]`, one row
+/// for a cluster without sub-lobes): [`NO_PART`] is row 0.
+#[inline]
+pub(crate) fn part_row(part: u16) -> usize {
+    if part == NO_PART {
+        0
+    } else {
+        part as usize
+    }
+}
+
 /// The moments and vMF of a set of `(normal, area)`.
 fn part_of(facets: impl Iterator<Item = (Vec3, f64)>) -> SubLobe {
     let mut o = SubLobe {
