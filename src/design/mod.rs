@@ -181,17 +181,17 @@ pub fn run(job: &DesignJob) -> Result<String> {
         Fixed::Geometry(hf, _) => Some(hf.clone()),
         _ => None,
     };
-    if job.library.is_none() {
-        crate::library::profile::LibraryProfile::load(&scene.library_profile).map_err(|e| {
-            // The loader names its input as the command line does (`--profile`); here it is
-            // the scene's key.
-            if e.context == "--profile" {
-                Error::new(ctx("library_profile"), e.message)
-            } else {
-                e.within(ctx("library_profile"))
-            }
-        })?;
-    }
+    // Checked even when `--library` names the library to use: a mistyped key is a mistake in
+    // the scene whichever library the run reads.
+    crate::library::profile::LibraryProfile::load(&scene.library_profile).map_err(|e| {
+        // The loader names its input as the command line does (`--profile`); here it is the
+        // scene's key.
+        if e.context == "--profile" {
+            Error::new(ctx("library_profile"), e.message)
+        } else {
+            e.within(ctx("library_profile"))
+        }
+    })?;
     crate::fab::check_tile(&profile, scene.tile_mm).map_err(|e| {
         if e.context == "tile_mm" {
             Error::new(ctx("tile_mm"), e.message)
@@ -298,6 +298,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
         specs.into_iter().zip(checks).collect();
     let mut counted: std::collections::BTreeSet<String> = Default::default();
     let mut candidates_rejected = 0;
+    let mut feasible = Vec::new();
     for c in &result.candidates {
         // One detail per geometry: its best rotation (candidates come best first).
         if !counted.insert(c.geometry_spec.clone()) {
@@ -317,9 +318,23 @@ pub fn run(job: &DesignJob) -> Result<String> {
             let pf = crate::solve::material_prefiltered(&lib, &mat, c.material)?;
             prefiltered.insert(c.material_spec.clone(), pf);
         }
-        let pf = &prefiltered[&c.material_spec];
-        let e_design = eye.error(&look, &hf, pf, c.psi_deg, &opt);
-        let e_made = eye.error(&look, &rep.made, pf, c.psi_deg, &opt);
+        feasible.push((c, hf, rep, mat));
+    }
+    // The designed and the made surface of each feasible detail, appraised in parallel (each
+    // builds its own light lobes; the values do not depend on the number of threads).
+    let appraised: Vec<(f64, f64)> = {
+        use rayon::prelude::*;
+        feasible
+            .par_iter()
+            .map(|(c, hf, rep, _)| {
+                let pf = &prefiltered[&c.material_spec];
+                let e_design = eye.error(&look, hf, pf, c.psi_deg, &opt);
+                let e_made = eye.error(&look, &rep.made, pf, c.psi_deg, &opt);
+                (e_design, e_made)
+            })
+            .collect()
+    };
+    for ((c, hf, rep, mat), (e_design, e_made)) in feasible.into_iter().zip(appraised) {
         let score = e_made + scene.cost_weight * rep.cost.total;
         ranked.push((score, c.clone(), rep, e_design, e_made, hf, mat));
     }
