@@ -133,14 +133,16 @@ impl Heightfield {
             return Err(Error::new(
                 &name,
                 format!(
-                    "height at row {}, column {} is {:e} cells ({:e} mm): heights must lie within \
+                    "height at row {}, column {} is {:.3e} cells ({:.3e} mm): heights must lie within \
                      ±{MAX_HEIGHT:e} cells (the side of one sample), beyond which rays at grazing \
                      angles cannot be followed cell by cell in double precision; scale the map \
-                     down (--height-scale)",
+                     down (--height-scale) or, if one cell of {:.3e} mm is too small, give a larger \
+                     patch (--patch-size)",
                     i / w,
                     i % w,
                     z[i],
-                    z[i] * cell_mm
+                    z[i] * cell_mm,
+                    cell_mm
                 ),
             ));
         }

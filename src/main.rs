@@ -198,7 +198,7 @@ enum Cmd {
         #[arg(long, short = 'k', default_value_t = 5, value_parser = in_range::<usize>(1, 1000))]
         k: usize,
         /// Items re-ranked with their own library data [default: geometries one per 20 (256 to 4096), materials one per 4 (64 to 1024)]
-        #[arg(long)]
+        #[arg(long, value_parser = in_range::<usize>(1, 100_000_000))]
         pool: Option<usize>,
         /// Geometry solver: rank the library by the representatives' light lobes only, not also
         /// by their binned columns (the pool then comes from the light-lobe rankings: X and, when the library has them, the weights refitted to the light lobes).
@@ -213,12 +213,12 @@ enum Cmd {
         /// General solver: starts (plus three from the first start's material sharpened, lobe
         /// widths x 0.7, x 0.4 and x 0.25, each run only while nothing found is within 7 %, or
         /// always with --stop-below 0) and iterations per start.
-        #[arg(long, default_value_t = 5)]
+        #[arg(long, default_value_t = 5, value_parser = in_range::<usize>(1, 1000))]
         starts: usize,
         #[arg(long, default_value_t = 4, value_parser = in_range::<usize>(1, 1000))]
         iterations: usize,
         /// General solver: geometries of each geometry solve that get a material solve.
-        #[arg(long, default_value_t = 3)]
+        #[arg(long, default_value_t = 3, value_parser = in_range::<usize>(1, 1000))]
         beam: usize,
         /// General solver: pairs of the joint search (both libraries through their
         /// representatives) re-ranked with their own data (more than 512 narrowed by coarse
@@ -237,7 +237,7 @@ enum Cmd {
         #[arg(long, value_enum, default_value = "exact")]
         final_eval: FinalArg,
         /// Visually equivalent details: return up to N diverse combinations within --bound.
-        #[arg(long)]
+        #[arg(long, value_parser = in_range::<usize>(1, 1000))]
         veds: Option<usize>,
         #[arg(long, default_value_t = 0.07, value_parser = in_range(1e-6, 10.0))]
         bound: f64,
@@ -272,7 +272,7 @@ enum Cmd {
         #[arg(long, default_value_t = 1, value_parser = in_range::<usize>(1, 360))]
         psi: usize,
         /// Items re-ranked with their own library data [default: geometries one per 20 (256 to 4096), materials one per 4 (64 to 1024)]
-        #[arg(long)]
+        #[arg(long, value_parser = in_range::<usize>(1, 100_000_000))]
         pool: Option<usize>,
         /// Geometry solver: rank the library by the representatives' light lobes only, not also
         /// by their binned columns (the pool then comes from the light-lobe rankings: X and, when the library has them, the weights refitted to the light lobes).
@@ -291,10 +291,10 @@ enum Cmd {
         /// General solver: starts (plus three from the first start's material sharpened, lobe
         /// widths x 0.7, x 0.4 and x 0.25, each run only while nothing found is within 7 %, or
         /// always with --stop-below 0).
-        #[arg(long, default_value_t = 3)]
+        #[arg(long, default_value_t = 3, value_parser = in_range::<usize>(1, 1000))]
         starts: usize,
         /// General solver: geometries of each geometry solve that get a material solve.
-        #[arg(long, default_value_t = 3)]
+        #[arg(long, default_value_t = 3, value_parser = in_range::<usize>(1, 1000))]
         beam: usize,
         /// General solver: pairs of the joint search (both libraries through their
         /// representatives) re-ranked with their own data (more than 512 narrowed by coarse

@@ -70,10 +70,12 @@ pub fn load_grey(path: &Path) -> Result<GreyImage> {
     })?;
     let g = img.to_luma32f();
     let (w, h) = (g.width() as usize, g.height() as usize);
-    if w == 0 || h == 0 {
+    if w < 2 || h < 2 {
+        // One row or column of pixels holds no texture in the other direction (a 1×1 image
+        // used to give a flat surface without a word).
         return Err(Error::new(
             path.display().to_string(),
-            "the image is empty (expected at least 1×1 pixels)",
+            format!("the image is {w}×{h} pixels; a texture needs at least 2×2"),
         ));
     }
     Ok(GreyImage {
@@ -739,5 +741,12 @@ mod tests {
         let g = load_grey(&q).unwrap();
         assert_eq!((g.w, g.h), (4, 3));
         assert!((g.at(3, 2) - 180.0 / 255.0).abs() < 1e-3);
+        // A single pixel (or a single row) is no texture: refused, naming the file.
+        let one = dir.join("one.png");
+        image::GrayImage::from_pixel(1, 1, image::Luma([90]))
+            .save(&one)
+            .unwrap();
+        let e = load_grey(&one).unwrap_err().to_string();
+        assert!(e.contains("one.png") && e.contains("at least 2×2"), "{e}");
     }
 }

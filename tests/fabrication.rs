@@ -513,13 +513,33 @@ fn scale_window_and_check() {
         msg.contains("arc minute") && msg.contains("at least 21.9") && msg.contains("at most 0.58"),
         "{msg}"
     );
+    // A tile must hold one whole period: the V groove needs at least 21.9 mm, a 10 mm tile
+    // cannot show it.
+    let small = CheckOptions {
+        tile_mm: (10.0, 30.0),
+        ..far
+    };
+    let r = check_detail(&hf, &p, &small).unwrap();
+    let tile = r.window.upper.iter().find(|b| b.name == "tile").unwrap();
+    assert_eq!(tile.patch_mm, 10.0);
+    let msg = &r
+        .rejections
+        .iter()
+        .find(|x| x.code == "scale_window")
+        .unwrap()
+        .message;
+    assert!(msg.contains("at least one period"), "{msg}");
     // A flat detail has no period to see: its patch is the mesh bound's, the smallest at which
     // the 50 mm tile's mesh keeps within its samples (it used to get the viewing bound's 0.58
     // mm, and a tile of 11,000² samples that the export refused after the whole search).
     let flat = Heightfield::flat(128, 128);
     let r = check_detail(&flat, &p, &near).unwrap();
     assert!(r.feasible, "{:?}", r.rejections);
-    assert!(r.window.upper.iter().all(|b| b.name != "viewing"));
+    assert!(r
+        .window
+        .upper
+        .iter()
+        .all(|b| b.name != "viewing" && b.name != "tile"));
     let mesh = r.window.lower.iter().find(|b| b.name == "mesh").unwrap();
     assert_eq!(r.patch_mm, mesh.patch_mm);
     let side = (50.0 * 128.0 / r.patch_mm).ceil();

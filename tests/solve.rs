@@ -918,6 +918,17 @@ fn design_checks_inputs_first_and_reads_paths_beside_the_scene() {
         e.contains("u1.toml: key `library_profile`") && e.contains("'nope'"),
         "{e}"
     );
+    // With --library as well: the key is a mistake in the scene whichever library is read.
+    let e = biscale::design::run(&job).err().unwrap().to_string();
+    assert!(
+        e.contains("u1.toml: key `library_profile`") && e.contains("'nope'"),
+        "{e}"
+    );
+    // A tile smaller than the smallest feature the profile makes: refused before the search.
+    bad_scene(
+        text.replace("tile_mm = [20.0, 20.0]", "tile_mm = [1e-9, 1e-9]"),
+        &["u1.toml: key `tile_mm`", "smallest feature"],
+    );
     std::fs::write(&scene, &text).unwrap();
     let file = out.join("a-file");
     std::fs::write(&file, "x").unwrap();

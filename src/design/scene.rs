@@ -319,9 +319,7 @@ impl Scene {
             }
         }
         if let Some(c) = self.colour {
-            if c.iter().any(|x| !(x.is_finite() && *x >= 0.0)) {
-                return Err(Error::new("colour", "expected three numbers >= 0"));
-            }
+            crate::solve::look::check_colour("colour", c)?;
         }
         Ok(())
     }
@@ -400,5 +398,17 @@ mod tests {
             .unwrap()
             .to_string();
         assert!(e.contains("triangle_budget"), "{e}");
+        // A black target colour has no scale for the relative error: refused, as by `solve`.
+        let e = Scene::parse(
+            &format!("{DEFAULT_SCENE}\ncolour = [0.0, 0.0, 0.0]\n"),
+            "s.toml",
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(
+            e.contains("s.toml") && e.contains("colour") && e.contains("not all 0"),
+            "{e}"
+        );
     }
 }

@@ -83,6 +83,20 @@ fn reject(v: &mut Vec<Rejection>, code: &str, message: String) {
 pub fn check_tile(profile: &Profile, tile_mm: [f64; 2]) -> Result<()> {
     use crate::error::show_num;
     let (ex, ey, ez) = profile.machine.envelope_mm();
+    let small = tile_mm[0].min(tile_mm[1]);
+    if small < profile.min_feature_mm {
+        return Err(Error::new(
+            "tile_mm",
+            format!(
+                "{} × {} mm is smaller than the smallest feature profile '{}' makes ({} mm); \
+                 make the tile larger",
+                show_num(tile_mm[0]),
+                show_num(tile_mm[1]),
+                profile.name,
+                show_num(profile.min_feature_mm)
+            ),
+        ));
+    }
     if tile_mm[0] > ex || tile_mm[1] > ey {
         return Err(Error::new(
             "tile_mm",

@@ -30,6 +30,17 @@ pub fn import_obj(path: &Path, samples_x: usize) -> Result<Heightfield> {
         ignore_points: true,
         ignore_lines: true,
     };
+    // tobj's error for a file it cannot open drops the system's reason; opening it here keeps
+    // it ("No such file or directory", "Permission denied", "Is a directory").
+    std::fs::File::open(path)
+        .and_then(|f| {
+            if f.metadata()?.is_dir() {
+                Err(std::io::Error::other("it is a directory"))
+            } else {
+                Ok(())
+            }
+        })
+        .map_err(|e| Error::io(path, "read the OBJ", e))?;
     let (models, _materials) = tobj::load_obj(path, &opts).map_err(|e| {
         Error::new(
             &ctx,

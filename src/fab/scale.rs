@@ -20,6 +20,7 @@
 //!   to see and no such bound.
 //! - **reach**: the relief must not exceed the tool's flute length (mills) or the build height
 //!   minus the base (printers), and base + relief must fit the mill's z travel.
+//! - **tile**: the tile must hold at least one whole period (a flat detail has none).
 //!
 //! The size picked is the geometric mean of the bounds (equal ratio margin to both), or the
 //! lower bound when there is no upper bound (a flat detail). An empty interval rejects the detail with a
@@ -36,7 +37,7 @@ use crate::heightfield::Heightfield;
 /// One bound of the window.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct Bound {
-    /// "process", "features", "viewing", "reach" or "machine_z".
+    /// "process", "features", "mesh", "viewing", "tile", "reach" or "machine_z".
     pub name: String,
     pub patch_mm: f64,
     pub why: String,
@@ -170,6 +171,19 @@ pub fn scale_window(
         ),
     });
     let mut upper = Vec::new();
+    // A tile that does not hold one whole period does not show the detail's large-scale look
+    // (a flat detail has no period).
+    if relief_g > 0.0 {
+        upper.push(Bound {
+            name: "tile".into(),
+            patch_mm: tx.min(ty),
+            why: format!(
+                "the {} × {} mm tile must hold at least one period",
+                crate::error::show_num(tx),
+                crate::error::show_num(ty)
+            ),
+        });
+    }
     let theta = (profile.max_period_arcmin / 60.0).to_radians();
     let side = hf.width().max(hf.height()) as f64;
     // A flat detail has no period to see.

@@ -104,6 +104,9 @@ fn chunk_path(dir: &Path, kind: &str, k: usize) -> PathBuf {
 /// needed, and nothing else. The file is created exclusively, so of several processes claiming an
 /// empty directory at once exactly one writes it and the others compare against it.
 fn claim_dir(dir: &Path, prof: &LibraryProfile) -> Result<()> {
+    // A file where the directory should be, or a directory that cannot be written, is named as
+    // such (not as a profile.toml that cannot be read).
+    crate::atomic_write::check_output_dir(dir, "library directory")?;
     let path = dir.join("profile.toml");
     let canon = prof.canonical();
     let old = match std::fs::read_to_string(&path) {

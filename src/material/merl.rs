@@ -15,6 +15,11 @@ const N_TH: usize = 90;
 const N_TD: usize = 90;
 const N_PD: usize = 180;
 const SCALE: [f64; 3] = [1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0];
+/// The largest BRDF value (per steradian, once scaled) a measured file may hold: far above any
+/// measured material (the sharpest peaks of the MERL set are thousands) and above the analytic
+/// models' peaks at their sharpest accepted settings (GGX `alpha = 0.001`: about 8e4), low
+/// enough that sums over a hemisphere of samples stay finite in single precision.
+pub const MAX_VALUE: f64 = 1e6;
 
 /// A measured BRDF held in memory (f32 per channel: 11.7 MB).
 #[derive(Debug, Clone)]
@@ -80,16 +85,17 @@ impl MerlBrdf {
                         format!("value {i} of channel {c} is {v}, expected a finite number"),
                     ));
                 }
-                let x = if v < 0.0 { 0.0 } else { (v * SCALE[c]) as f32 };
-                if !x.is_finite() {
+                let x = if v < 0.0 { 0.0 } else { v * SCALE[c] };
+                if x > MAX_VALUE {
                     return Err(Error::new(
                         name,
                         format!(
-                            "value {i} of channel {c} is {v:e}: too large for a reflectance \
-                             (expected a finite single-precision number once scaled)"
+                            "value {i} of channel {c} is {v:e}, {x:.3e} per steradian once scaled: \
+                             too large for a reflectance (expected at most {MAX_VALUE:e})"
                         ),
                     ));
                 }
+                let x = x as f32;
                 ch.push(x);
             }
         }
@@ -237,5 +243,13 @@ mod tests {
         MerlBrdf::write_synthetic(&huge, |th, _, _, _| if th == 3 { 1e300 } else { 1.0 }).unwrap();
         let e = MerlBrdf::load(&huge).unwrap_err().to_string();
         assert!(e.contains("huge.binary") && e.contains("too large"), "{e}");
+        // Finite in single precision, but far beyond any reflectance: refused too (before,
+        // solve and design went on and found nothing).
+        MerlBrdf::write_synthetic(&huge, |_, _, _, _| 1e12).unwrap();
+        let e = MerlBrdf::load(&huge).unwrap_err().to_string();
+        assert!(
+            e.contains("huge.binary") && e.contains("at most 1e6"),
+            "{e}"
+        );
     }
 }

@@ -208,16 +208,25 @@ pub fn parse_colour(s: &str) -> Result<[f64; 3]> {
                 format!("'{s}': expected r,g,b, e.g. 0.8,0.5,0.2"),
             )
         })?;
-    if v.len() != 3
-        || v.iter().any(|x| !(x.is_finite() && *x >= 0.0 && *x <= 1e6))
-        || v.iter().all(|x| *x == 0.0)
-    {
-        return Err(Error::new(
+    match v[..] {
+        [r, g, b] => check_colour(&format!("--colour '{s}'"), [r, g, b]),
+        _ => Err(Error::new(
             "--colour",
-            format!("'{s}': expected three numbers in [0, 1e6], not all 0"),
-        ));
+            format!("'{s}': {}", COLOUR_EXPECTED),
+        )),
     }
-    Ok([v[0], v[1], v[2]])
+}
+
+const COLOUR_EXPECTED: &str = "expected three numbers in [0, 1e6], not all 0";
+
+/// A target colour as `solve --colour` and a scene's `colour` take it: three channels in
+/// `[0, 1e6]`, not all 0 (a black target has no scale for the relative error). `what` names
+/// where it came from in the error.
+pub fn check_colour(what: &str, c: [f64; 3]) -> Result<[f64; 3]> {
+    if c.iter().any(|x| !(x.is_finite() && *x >= 0.0 && *x <= 1e6)) || c.iter().all(|x| *x == 0.0) {
+        return Err(Error::new(what, format!("{c:?}: {COLOUR_EXPECTED}")));
+    }
+    Ok(c)
 }
 
 #[cfg(test)]
