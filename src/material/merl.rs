@@ -15,10 +15,10 @@ const N_TH: usize = 90;
 const N_TD: usize = 90;
 const N_PD: usize = 180;
 const SCALE: [f64; 3] = [1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0];
-/// The largest BRDF value (per steradian, once scaled) a measured file may hold: far above any
-/// measured material (the sharpest peaks of the MERL set are thousands) and above the analytic
-/// models' peaks at their sharpest accepted settings (GGX `alpha = 0.001`: about 8e4), low
-/// enough that sums over a hemisphere of samples stay finite in single precision.
+/// The largest BRDF value (per steradian, once scaled) a measured file may hold: above the
+/// analytic models' peaks at their sharpest accepted settings (GGX `alpha = 0.001` at normal
+/// incidence: `1 / (4 pi alpha²)`, about 8e4), far below what overflows the single-precision
+/// tables built from it (1e12 per value passed the old check, and solve then found nothing).
 pub const MAX_VALUE: f64 = 1e6;
 
 /// A measured BRDF held in memory (f32 per channel: 11.7 MB).
