@@ -196,6 +196,17 @@ pub fn run(job: &SolveJob) -> Result<String> {
     for n in &s.notes {
         progress.note(&format!("solve: {n}"));
     }
+    if result.candidates.is_empty() {
+        // Every combination's error was undefined (not finite): a failure, not an empty answer.
+        return Err(Error::new(
+            "--target",
+            format!(
+                "'{}': the {mode} found no combination with a finite error against this target \
+                 (expected a target whose values are finite and of a reflectance's size)",
+                look.name
+            ),
+        ));
+    }
     if job.json {
         #[derive(serde::Serialize)]
         struct Out<'a> {
@@ -235,9 +246,6 @@ pub fn table(target: &str, mode: &str, cands: &[Candidate]) -> String {
             c.search_error * 100.0,
             c.rerank_error * 100.0
         ));
-    }
-    if cands.is_empty() {
-        s.push_str("| – | no candidate | | | | | |\n");
     }
     if let Some(best) = cands.first().filter(|c| c.error > MATCH_BOUND) {
         s.push_str(&format!(
