@@ -503,12 +503,16 @@ fn scale_window_and_check() {
     };
     let r = check_detail(&hf, &p, &near).unwrap();
     assert!(!r.feasible);
-    let msg = &r
-        .rejections
-        .iter()
-        .find(|x| x.code == "scale_window")
-        .unwrap()
-        .message;
+    // The scale window's rejection message.
+    let window_rejection = |r: &biscale::fab::FabReport| -> String {
+        r.rejections
+            .iter()
+            .find(|x| x.code == "scale_window")
+            .unwrap()
+            .message
+            .clone()
+    };
+    let msg = window_rejection(&r);
     assert!(
         msg.contains("arc minute") && msg.contains("at least 21.9") && msg.contains("at most 0.58"),
         "{msg}"
@@ -522,12 +526,7 @@ fn scale_window_and_check() {
     let r = check_detail(&hf, &p, &small).unwrap();
     let tile = r.window.upper.iter().find(|b| b.name == "tile").unwrap();
     assert_eq!(tile.patch_mm, 10.0);
-    let msg = &r
-        .rejections
-        .iter()
-        .find(|x| x.code == "scale_window")
-        .unwrap()
-        .message;
+    let msg = window_rejection(&r);
     assert!(msg.contains("at least one period"), "{msg}");
     // A flat detail has no period to see: its patch is the mesh bound's, the smallest at which
     // the 50 mm tile's mesh keeps within its samples (it used to get the viewing bound's 0.58
