@@ -272,6 +272,12 @@ pub fn run(job: &DesignJob) -> Result<String> {
         }
     }
     let t1 = Instant::now();
+    // One bar over the checks, then the appraisals of the feasible (added when known): the
+    // stage takes seconds.
+    let bar = progress.bar(
+        specs.len() as u64,
+        "design: fabrication check and appraisal",
+    );
     let checks: Vec<(Heightfield, FabReport)> = {
         use rayon::prelude::*;
         specs
@@ -290,6 +296,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
                         viewing_distance_mm: scene.viewing_distance_mm,
                     },
                 )?;
+                bar.inc(1);
                 Ok((hf, rep))
             })
             .collect::<Result<_>>()?
@@ -322,6 +329,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
     }
     // The designed and the made surface of each feasible detail, appraised in parallel (each
     // builds its own light lobes; the values do not depend on the number of threads).
+    bar.inc_length(feasible.len() as u64);
     let appraised: Vec<(f64, f64)> = {
         use rayon::prelude::*;
         feasible
@@ -330,10 +338,12 @@ pub fn run(job: &DesignJob) -> Result<String> {
                 let pf = &prefiltered[&c.material_spec];
                 let e_design = eye.error(&look, hf, pf, c.psi_deg, &opt);
                 let e_made = eye.error(&look, &rep.made, pf, c.psi_deg, &opt);
+                bar.inc(1);
                 (e_design, e_made)
             })
             .collect()
     };
+    bar.finish();
     for ((c, hf, rep, mat), (e_design, e_made)) in feasible.into_iter().zip(appraised) {
         let score = e_made + scene.cost_weight * rep.cost.total;
         ranked.push((score, c.clone(), rep, e_design, e_made, hf, mat));
