@@ -127,7 +127,7 @@ pub fn exact(
         let fixed = ExactEvaluator::new(&hf, 2).fbar_many_estimated(&[&mat], &dirs);
         let fixed_s = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let auto = crate::exact::fbar_to_tolerance(&hf, &[&mat], &dirs, tol, |_, _, _| {});
+        let auto = crate::exact::fbar_to_tolerance(&hf, &[&mat], &dirs, tol, None, |_, _, _| {});
         let auto_s = t.elapsed().as_secs_f64();
         let errors = |v: &[f64]| {
             format!(
@@ -370,7 +370,8 @@ pub fn accuracy(
         // below is the reference's).
         let (exact, samples, noise) = match opt.exact_tol {
             Some(tol) => {
-                let c = crate::exact::fbar_to_tolerance(&hf, &[&mat], &dirs, tol, |_, _, _| {});
+                let c =
+                    crate::exact::fbar_to_tolerance(&hf, &[&mat], &dirs, tol, None, |_, _, _| {});
                 (c.values, c.samples, c.noise)
             }
             None => {

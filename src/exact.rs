@@ -25,6 +25,7 @@
 
 use crate::frame::{DirPair, Vec3};
 use crate::heightfield::{Facet, Heightfield};
+use crate::library::progress::Bar;
 use crate::material::Material;
 use crate::visibility::{Direction, Visibility};
 use rayon::prelude::*;
@@ -85,18 +86,25 @@ impl Converged {
 /// sum, gets the rays it needs. Each pass is computed afresh; the last one is returned.
 /// `on_pass(rays, estimate, next)` is called after each pass, with the rays per cell side of
 /// the next pass if there is one (a run's log: a pass at 8×8 takes 16 times one at 2×2).
+/// `bar`, if any, counts each pass's pairs from both ends ([`ExactEvaluator::with_progress`]);
+/// a further pass adds its count to the bar's length.
 pub fn fbar_to_tolerance(
     hf: &Heightfield,
     mats: &[&Material],
     pairs: &[DirPair],
     tol: f64,
+    bar: Option<&Bar>,
     mut on_pass: impl FnMut(usize, f64, Option<usize>),
 ) -> Converged {
     let (first, most) = AUTO_SAMPLES;
     let mut s = first;
     let mut passes = Vec::new();
     loop {
-        let e = ExactEvaluator::new(hf, s).fbar_many_estimated(mats, pairs);
+        let mut ev = ExactEvaluator::new(hf, s);
+        if let Some(b) = bar {
+            ev = ev.with_progress(b);
+        }
+        let e = ev.fbar_many_estimated(mats, pairs);
         passes.push((s, e.noise));
         if e.noise <= tol || s >= most {
             on_pass(s, e.noise, None);
@@ -109,6 +117,9 @@ pub fn fbar_to_tolerance(
         }
         let want = (s as f64 * (e.noise / tol).powf(1.0 / 1.5)).ceil();
         let next = (want.min(most as f64) as usize).max(s + 1);
+        if let Some(b) = bar {
+            b.inc_length(2 * pairs.len() as u64);
+        }
         on_pass(s, e.noise, Some(next));
         s = next;
     }
@@ -120,6 +131,8 @@ pub struct ExactEvaluator<'a> {
     facets: Vec<Facet>,
     /// View rays per cell side.
     s: usize,
+    /// Counts the pairs done, from each end ([`Self::with_progress`]).
+    bar: Option<&'a Bar>,
 }
 
 impl<'a> ExactEvaluator<'a> {
@@ -129,7 +142,15 @@ impl<'a> ExactEvaluator<'a> {
             vis: Visibility::new(hf),
             facets: hf.facets(),
             s: s.max(1),
+            bar: None,
         }
+    }
+
+    /// The same evaluator, advancing `bar` by one for each pair done from each end (a
+    /// [`Self::fbar`] of `n` pairs counts `2n`): a long evaluation shows its rate and time left.
+    pub fn with_progress(mut self, bar: &'a Bar) -> Self {
+        self.bar = Some(bar);
+        self
     }
 
     /// Number of view rays per direction.
@@ -386,26 +407,31 @@ impl<'a> ExactEvaluator<'a> {
             .map(|key| {
                 let idx = &groups[key];
                 let wo = pairs[idx[0]].wo;
-                if wo.z <= 0.0 {
-                    return idx.iter().map(|&k| (k, vec![0.0; mats.len()])).collect();
+                let done: Vec<(usize, Vec<f64>)> = if wo.z <= 0.0 {
+                    idx.iter().map(|&k| (k, vec![0.0; mats.len()])).collect()
+                } else {
+                    let view = self.view(wo);
+                    idx.iter()
+                        .map(|&k| {
+                            let wi = pairs[k].wi;
+                            let v = if wi.z > 0.0 {
+                                self.shade(mats, &view, wi, wo)
+                            } else {
+                                vec![0.0; mats.len()]
+                            };
+                            (
+                                k,
+                                v.into_iter()
+                                    .map(|x| if x.is_finite() { x } else { 0.0 })
+                                    .collect(),
+                            )
+                        })
+                        .collect()
+                };
+                if let Some(b) = self.bar {
+                    b.inc(idx.len() as u64);
                 }
-                let view = self.view(wo);
-                idx.iter()
-                    .map(|&k| {
-                        let wi = pairs[k].wi;
-                        let v = if wi.z > 0.0 {
-                            self.shade(mats, &view, wi, wo)
-                        } else {
-                            vec![0.0; mats.len()]
-                        };
-                        (
-                            k,
-                            v.into_iter()
-                                .map(|x| if x.is_finite() { x } else { 0.0 })
-                                .collect(),
-                        )
-                    })
-                    .collect()
+                done
             })
             .collect();
         let mut out = vec![vec![0.0; pairs.len()]; mats.len()];
@@ -506,7 +532,7 @@ mod tests {
             );
         }
         let coarse = rel_rms(&ExactEvaluator::new(&hf, 2).fbar(&m, &pairs), &reference);
-        let c = fbar_to_tolerance(&hf, &[&m], &pairs, 0.005, |_, _, _| {});
+        let c = fbar_to_tolerance(&hf, &[&m], &pairs, 0.005, None, |_, _, _| {});
         let err = rel_rms(&c.values[0], &reference);
         assert!(c.samples > 2 && c.noise <= 0.005, "{:?}", c.passes);
         assert!(
@@ -514,7 +540,7 @@ mod tests {
             "{err} against {coarse} at 2 × 2"
         );
         let lambert = parse_material("lambert:albedo=0.5").unwrap();
-        let c = fbar_to_tolerance(&hf, &[&lambert], &pairs, 0.005, |_, _, _| {});
+        let c = fbar_to_tolerance(&hf, &[&lambert], &pairs, 0.005, None, |_, _, _| {});
         assert_eq!(c.passes.len(), 1, "{:?}", c.passes);
         assert_eq!(c.samples, AUTO_SAMPLES.0);
     }

@@ -165,9 +165,14 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
         Method::Exact => {
             let t = Instant::now();
             let facets = 2 * hf.width() * hf.height();
+            // Every pair is shaded from each end: seconds to minutes on a 128² map.
+            let bar = crate::library::progress::Progress { quiet: job.quiet }
+                .bar(2 * dirs.len() as u64, "exact: pairs (from each end)");
             let (v, how) = match job.exact_samples {
                 Some(n) => {
-                    let e = ExactEvaluator::new(&hf, n).fbar_many_estimated(&[&mat], &dirs);
+                    let e = ExactEvaluator::new(&hf, n)
+                        .with_progress(&bar)
+                        .fbar_many_estimated(&[&mat], &dirs);
                     (
                         e.values,
                         format!(
@@ -183,6 +188,7 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
                         &[&mat],
                         &dirs,
                         job.exact_tol,
+                        Some(&bar),
                         |n, e, next| {
                             if let Some(m) = next {
                                 log(
@@ -215,6 +221,7 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
                     (c.values, how)
                 }
             };
+            bar.finish();
             log(
                 job.quiet,
                 format!(
