@@ -437,9 +437,19 @@ pub fn finalize(
     // Each geometry's heightfield, and for the fast evaluator its compact BVNDF, built once for
     // the candidates that share it.
     let mut built: HashMap<String, (Heightfield, Option<CompactBvndf>)> = HashMap::new();
-    for c in cands.iter_mut() {
-        let (samples, target) =
-            super::rotated_samples(look, &lights, c.psi_deg.to_radians(), &opt.sampling);
+    let sampled: Vec<_> = cands
+        .iter()
+        .map(|c| super::rotated_samples(look, &lights, c.psi_deg.to_radians(), &opt.sampling))
+        .collect();
+    let bar = match opt.final_eval {
+        Final::Exact => super::final_bar(
+            opt,
+            cands.len(),
+            sampled.first().map_or(0, |s| s.0.pairs.len()),
+        ),
+        _ => crate::library::progress::Bar::hidden(),
+    };
+    for (c, (samples, target)) in cands.iter_mut().zip(sampled) {
         let (hf, full) = match built.entry(c.geometry_spec.clone()) {
             Entry::Occupied(e) => e.into_mut(),
             Entry::Vacant(e) => e.insert((library_heightfield(&c.geometry_spec)?, None)),
@@ -451,11 +461,12 @@ pub fn finalize(
                 let full = full.get_or_insert_with(|| super::bvndf_of(hf));
                 super::fast_values(full, &pf, &samples)
             }
-            _ => exact_values(hf, &[&mat], &samples, opt.exact_samples).remove(0),
+            _ => exact_values(hf, &[&mat], &samples, opt.exact_samples, &bar).remove(0),
         };
         c.error = samples.rel_error(&target, &v);
         c.evaluated_by = opt.final_eval;
     }
+    bar.finish();
     cands.sort_by(|a, b| a.error.total_cmp(&b.error));
     Ok(cands)
 }

@@ -410,6 +410,14 @@ pub fn solve_with(
     // Stage 3: the final evaluator.
     let t2 = Instant::now();
     let colour = crate::library::items::average_colour(material);
+    let bar = match opt.final_eval {
+        Final::Exact => super::final_bar(
+            opt,
+            reranked.len(),
+            rots.first().map_or(0, |r| r.samples.pairs.len()),
+        ),
+        _ => crate::library::progress::Bar::hidden(),
+    };
     let mut out: Vec<Candidate> = reranked
         .iter()
         .map(
@@ -436,8 +444,8 @@ pub fn solve_with(
                     }
                     Final::Exact => {
                         let hf = library_heightfield(&items[j].spec)?;
-                        let v =
-                            exact_values(&hf, &[material], &r.samples, opt.exact_samples).remove(0);
+                        let v = exact_values(&hf, &[material], &r.samples, opt.exact_samples, &bar)
+                            .remove(0);
                         r.samples.rel_error(&r.target, &v)
                     }
                 };
@@ -457,6 +465,7 @@ pub fn solve_with(
             },
         )
         .collect::<Result<_>>()?;
+    bar.finish();
     // At the best brightness the order is stage 2's: the errors at the material's own
     // brightness are the answers' errors, not their ranking.
     if !anyb {

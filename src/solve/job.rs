@@ -175,12 +175,17 @@ pub fn run(job: &SolveJob) -> Result<String> {
     };
     look.check_not_black().map_err(|e| e.within("--target"))?;
     let lib = open_library(&job.library, &job.profile, &job.cache_dir, &progress)?;
+    // The final exact evaluation shows a bar here (the solvers' default is quiet).
+    let options = SolveOptions {
+        progress,
+        ..job.options.clone()
+    };
     let (mode, result) = match (&fixed, job.veds) {
         (Fixed::Neither, Some((n, bound))) => (
             "visually equivalent details",
-            super::veds::solve(&lib, &look, &job.options, &job.general, n, bound, 0.98)?,
+            super::veds::solve(&lib, &look, &options, &job.general, n, bound, 0.98)?,
         ),
-        _ => fixed.solve(&lib, &look, &job.options, &job.general)?,
+        _ => fixed.solve(&lib, &look, &options, &job.general)?,
     };
     progress.note(&format!(
         "solve: {mode}; library {} ('{}'); read: {}",

@@ -170,8 +170,12 @@ pub fn solve(
     let finals: Vec<Vec<f64>> = match opt.final_eval {
         Final::Library => Vec::new(),
         Final::Exact => {
+            // Every material is shaded on the same rays: one count per pair and end.
             let refs: Vec<&Material> = mats.iter().collect();
-            exact_values(hf, &refs, &samples, opt.exact_samples)
+            let bar = super::final_bar(opt, 1, samples.pairs.len());
+            let v = exact_values(hf, &refs, &samples, opt.exact_samples, &bar);
+            bar.finish();
+            v
         }
         Final::Fast => {
             // The forward model's full compact BVNDF, as the other solvers' fast final stage.

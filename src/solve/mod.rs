@@ -120,6 +120,9 @@ pub struct SolveOptions {
     /// Exact evaluator: view rays per cell side.
     pub exact_samples: usize,
     pub sampling: crate::sampling::SamplingConfig,
+    /// Progress bar of the final exact evaluation (seconds for a few candidates). Quiet by
+    /// default: `validate` and `design` run the solvers many times; `solve` shows it.
+    pub progress: crate::library::progress::Progress,
 }
 
 impl Default for SolveOptions {
@@ -136,8 +139,22 @@ impl Default for SolveOptions {
             final_eval: Final::Exact,
             exact_samples: 1,
             sampling: crate::sampling::SamplingConfig::default(),
+            progress: crate::library::progress::Progress { quiet: true },
         }
     }
+}
+
+/// The bar of a final exact evaluation of `evaluations` sets of `samples` pairs (each pair
+/// shaded from both ends), from the options' progress.
+pub(crate) fn final_bar(
+    opt: &SolveOptions,
+    evaluations: usize,
+    samples: usize,
+) -> crate::library::progress::Bar {
+    opt.progress.bar(
+        (2 * evaluations * samples) as u64,
+        "solve: final evaluation (exact; pairs from each end)",
+    )
 }
 
 /// One answer: a geometry (rotated by `psi_deg`), a material and its colour, with its errors.
@@ -278,8 +295,11 @@ pub fn exact_values(
     mats: &[&Material],
     s: &Samples,
     rays_per_side: usize,
+    bar: &crate::library::progress::Bar,
 ) -> Vec<Vec<f64>> {
-    ExactEvaluator::new(hf, rays_per_side).fbar_many(mats, &dir_pairs(s))
+    ExactEvaluator::new(hf, rays_per_side)
+        .with_progress(bar)
+        .fbar_many(mats, &dir_pairs(s))
 }
 
 /// A value [`smallest`] ranks: the searches' errors, in `f64`, or in `f32` where a scan computes

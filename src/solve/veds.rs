@@ -62,6 +62,11 @@ pub fn solve(
         }
         _ => a != b,
     };
+    // Each combination is finalised alone, so no bar per call: the log's notes say what was kept.
+    let one = SolveOptions {
+        progress: crate::library::progress::Progress { quiet: true },
+        ..opt.clone()
+    };
     let mut kept: Vec<super::Candidate> = Vec::new();
     let mut per_pass = [0usize; 2];
     // Finalised combinations over the bound are not evaluated twice.
@@ -94,7 +99,7 @@ pub fn solve(
                 continue;
             }
             tried += 1;
-            let fin = finalize(lib, look, vec![c.clone()], opt)?;
+            let fin = finalize(lib, look, vec![c.clone()], &one)?;
             match fin.into_iter().next() {
                 Some(f) if f.error <= bound => {
                     kept.push(f);
