@@ -272,10 +272,10 @@ pub fn run(job: &DesignJob) -> Result<String> {
         }
     }
     let t1 = Instant::now();
-    // One bar over the checks, then the appraisals of the feasible (added when known): the
-    // stage takes seconds.
+    // One bar over the checks and then the appraisals: two steps per geometry, the second
+    // counted as done at once for a geometry the check rejects (so the bar never goes back).
     let bar = progress.bar(
-        specs.len() as u64,
+        2 * specs.len() as u64,
         "design: fabrication check and appraisal",
     );
     let checks: Vec<(Heightfield, FabReport)> = {
@@ -329,7 +329,7 @@ pub fn run(job: &DesignJob) -> Result<String> {
     }
     // The designed and the made surface of each feasible detail, appraised in parallel (each
     // builds its own light lobes; the values do not depend on the number of threads).
-    bar.inc_length(feasible.len() as u64);
+    bar.inc((checked.len() - feasible.len()) as u64);
     let appraised: Vec<(f64, f64)> = {
         use rayon::prelude::*;
         feasible
