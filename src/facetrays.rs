@@ -89,10 +89,7 @@ impl<'a> FacetRays<'a> {
             .stratified_points_into(side, scratch);
         let seen = scratch
             .iter()
-            .filter(|p| {
-                self.vis.visible_dir(p.x, p.y, p.z, &ends.wo)
-                    && self.vis.visible_dir(p.x, p.y, p.z, &ends.wi)
-            })
+            .filter(|p| self.seen_and_lit(p, ends))
             .count();
         seen as f64 / scratch.len().max(1) as f64
     }
@@ -110,9 +107,14 @@ impl<'a> FacetRays<'a> {
             .facet(facet as usize)
             .stratified_points_into(4, scratch);
         let p = scratch[pick(facet, k) % scratch.len()];
-        let seen = self.vis.visible_dir(p.x, p.y, p.z, &ends.wo)
-            && self.vis.visible_dir(p.x, p.y, p.z, &ends.wi);
-        seen as u8 as f64
+        self.seen_and_lit(&p, ends) as u8 as f64
+    }
+
+    /// Whether point `p` is seen from the pair's `wo` and lit from its `wi` (the exact method's
+    /// shadow test, from both ends).
+    fn seen_and_lit(&self, p: &Vec3, ends: &Ends) -> bool {
+        self.vis.visible_dir(p.x, p.y, p.z, &ends.wo)
+            && self.vis.visible_dir(p.x, p.y, p.z, &ends.wi)
     }
 
     /// Facet `facet`'s jointly visible fraction as [`Self::visible_sum`] tests every facet:
