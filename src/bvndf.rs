@@ -82,6 +82,10 @@ pub struct BvndfConfig {
     pub seen_phi: usize,
     /// Height bands of that table's model of joint visibility (1: the two ends independent).
     pub seen_bands: usize,
+    /// The last polar node of the direction grid, in degrees; views beyond it take its data.
+    /// Beyond the libraries' 88.5° the grid ends with three nodes evenly spaced in the ray
+    /// slope ([`crate::dirgrid::DirGrid::to`]).
+    pub last_theta_deg: f64,
 }
 
 impl Default for BvndfConfig {
@@ -95,12 +99,16 @@ impl Default for BvndfConfig {
             seen_rays: 0,
             seen_phi: 0,
             seen_bands: 4,
+            last_theta_deg: crate::dirgrid::LAST_THETA_DEG,
         }
     }
 }
 
 impl BvndfConfig {
-    /// The `forward` command's default: 24 polar nodes and 40 azimuths (grazing views on
+    /// The `forward` command's default: 25 polar nodes, the libraries' spacing of 24 to 88.5°
+    /// but its last two, then three to 89.9° ([`crate::dirgrid::DirGrid::to`]: views between
+    /// 88.5° and the horizon were 18–400 % off with the last node at 88.5°), and 40 azimuths
+    /// (grazing views on
     /// grooves: 16 polar nodes left tall sine grooves at 3.3 % up to 85°; at grazing views over
     /// tall bumps, 32 azimuths left 3.1 % up to 85°, 40 give 2.5 %; 40 keep the axes and the
     /// diagonals as nodes), 32 normal clusters
@@ -114,12 +122,13 @@ impl BvndfConfig {
     /// "Line sweeps").
     pub fn forward() -> Self {
         BvndfConfig {
-            n_theta: 24,
+            n_theta: 25,
             n_phi: 40,
             clusters: 32,
             points: 262_144,
             seen_rays: 65_536,
             seen_phi: 512,
+            last_theta_deg: 89.9,
             ..BvndfConfig::default()
         }
     }
@@ -293,7 +302,7 @@ impl CompactBvndf {
     /// the fine seen table's first hits (its refining rounds added to the bar as they start)
     /// and the surface points' horizon marches. The table is the same whatever `progress` says.
     pub fn build_with(hf: &Heightfield, cfg: &BvndfConfig, progress: &Progress) -> Self {
-        let grid = DirGrid::new(cfg.n_theta, cfg.n_phi);
+        let grid = DirGrid::to(cfg.n_theta, cfg.n_phi, cfg.last_theta_deg);
         let facets = hf.facets();
         let abase = hf.base_area();
         let normals: Vec<Vec3> = facets.iter().map(|f| f.n).collect();
@@ -321,7 +330,11 @@ impl CompactBvndf {
                 &assign,
                 kc,
                 cfg.seen_bands,
-                DirGrid::new(cfg.n_theta, cfg.seen_phi.div_ceil(np) * np),
+                DirGrid::to(
+                    cfg.n_theta,
+                    cfg.seen_phi.div_ceil(np) * np,
+                    cfg.last_theta_deg,
+                ),
                 cfg.seen_phi.div_ceil(np),
                 rays,
                 progress,

@@ -10,6 +10,12 @@
 use crate::frame::{angles_of, dir_from_rad, Vec3};
 use std::f64::consts::TAU;
 
+/// The last polar node of the libraries' grids (and of [`DirGrid::new`]).
+pub const LAST_THETA_DEG: f64 = 88.5;
+
+/// Polar nodes of a grid to the horizon ([`DirGrid::to`]) beyond the libraries' spacing.
+pub const HORIZON_NODES: usize = 3;
+
 #[derive(Debug, Clone, PartialEq)]
 pub struct DirGrid {
     /// Polar angles in radians, increasing, starting at 0.
@@ -27,18 +33,46 @@ impl DirGrid {
         Self::new(10, 16)
     }
 
-    /// `n_theta` polar nodes from 0 to 88.5°, spaced uniformly in `1 - cos`-like steps that
-    /// tighten towards the horizon, and `n_phi` azimuths.
+    /// `n_theta` polar nodes from 0 to [`LAST_THETA_DEG`], spaced uniformly in `1 - cos`-like
+    /// steps that tighten towards the horizon, and `n_phi` azimuths.
     pub fn new(n_theta: usize, n_phi: usize) -> Self {
+        Self::to(n_theta, n_phi, LAST_THETA_DEG)
+    }
+
+    /// [`DirGrid::new`] with the last polar node at `last_deg` (below 90°). Up to
+    /// [`LAST_THETA_DEG`] the spacing is scaled to end there. Beyond it, with at least 5
+    /// nodes, the first `n_theta - 3` are those of `DirGrid::new(n_theta - 1, _)` (all of its
+    /// nodes but its last two, which its spacing bunches within a fraction of a degree below
+    /// 88.5°), and the last [`HORIZON_NODES`] are evenly spaced in the ray slope `cot(theta)`
+    /// (the interpolation variable) from the node before them to `last_deg`: views between
+    /// 88.5° and the horizon, which see only the tops of the relief, are resolved, and the nodes
+    /// below are the same as in a grid of one node fewer to 88.5°.
+    pub fn to(n_theta: usize, n_phi: usize, last_deg: f64) -> Self {
         let n_theta = n_theta.max(2);
-        let last = 88.5f64.to_radians();
-        // theta = last · g(u), g(u) = sin(u pi/2)^0.75 spreads nodes towards the horizon.
-        let thetas: Vec<f64> = (0..n_theta)
-            .map(|i| {
-                let u = i as f64 / (n_theta - 1) as f64;
-                last * (u * std::f64::consts::FRAC_PI_2).sin().powf(0.75)
-            })
-            .collect();
+        let last = last_deg.clamp(1.0, 89.99).to_radians();
+        // theta = top · g(u), g(u) = sin(u pi/2)^0.75 spreads nodes towards the horizon.
+        let spaced = |n: usize, top: f64| -> Vec<f64> {
+            (0..n)
+                .map(|i| {
+                    let u = i as f64 / (n - 1) as f64;
+                    top * (u * std::f64::consts::FRAC_PI_2).sin().powf(0.75)
+                })
+                .collect()
+        };
+        let library_last = LAST_THETA_DEG.to_radians();
+        let thetas: Vec<f64> = if last <= library_last || n_theta < 2 + HORIZON_NODES {
+            spaced(n_theta, last)
+        } else {
+            let mut t = spaced(n_theta - 1, library_last);
+            t.truncate(n_theta - HORIZON_NODES);
+            let m0 = 1.0 / t[t.len() - 1].tan();
+            let m1 = 1.0 / last.tan();
+            for k in 1..=HORIZON_NODES {
+                let m = m0 + (m1 - m0) * k as f64 / HORIZON_NODES as f64;
+                t.push((1.0 / m).atan());
+            }
+            t
+        };
         let n_phi = n_phi.max(3);
         let phi = |j: usize| j as f64 * TAU / n_phi as f64;
         let dirs = thetas
@@ -90,7 +124,7 @@ impl DirGrid {
             // Interpolate in the ray slope m = cot(theta), the variable in which visibility is a
             // threshold (a point is visible iff m exceeds its horizon slope), so the visible share
             // of an area is the CDF of its horizon slopes; from the zenith use tan(theta) = 1/m.
-            // tan(theta) from the direction itself (theta < 88.5° here, so w.z > 0).
+            // tan(theta) from the direction itself (theta below the last node here, so w.z > 0).
             let tan_w = (w.x * w.x + w.y * w.y).sqrt() / w.z;
             let t = if i == 0 {
                 tan_w / self.tans[1]
@@ -134,5 +168,31 @@ mod tests {
         }
         let w = g.weights(dir_from_deg(89.9, 359.9));
         assert!(w.iter().all(|x| x.1.is_finite() && x.1 >= 0.0));
+    }
+
+    #[test]
+    fn a_grid_to_the_horizon_interpolates_beyond_the_libraries_last_node() {
+        let g = DirGrid::to(25, 40, 89.9);
+        assert!((g.thetas[24].to_degrees() - 89.9).abs() < 1e-9);
+        assert_eq!(DirGrid::new(10, 16).thetas[9], LAST_THETA_DEG.to_radians());
+        // Below the horizon nodes, the libraries' spacing of one node fewer; the horizon nodes
+        // even in the ray slope.
+        assert_eq!(g.thetas[..22], DirGrid::new(24, 40).thetas[..22]);
+        let m: Vec<f64> = g.thetas[21..].iter().map(|t| 1.0 / t.tan()).collect();
+        for k in 1..3 {
+            assert!(
+                ((m[k - 1] - m[k]) - (m[k] - m[k + 1])).abs() < 1e-12,
+                "{m:?}"
+            );
+        }
+        assert!(g.thetas.windows(2).all(|w| w[0] < w[1]));
+        // A view at 89.5° lies between the last two polar rows, not on the last one.
+        let w = g.weights(dir_from_deg(89.5, 0.0));
+        let last_row: f64 = w.iter().filter(|x| x.0 >= 24 * 40).map(|x| x.1).sum();
+        assert!(last_row > 0.0 && last_row < 1.0, "{w:?}");
+        // Beyond the last node: its row alone.
+        let w = g.weights(dir_from_deg(89.95, 10.0));
+        let last_row: f64 = w.iter().filter(|x| x.0 >= 24 * 40).map(|x| x.1).sum();
+        assert!((last_row - 1.0).abs() < 1e-12, "{w:?}");
     }
 }

@@ -260,9 +260,11 @@ pub fn run(job: &ForwardJob) -> Result<ForwardResult> {
             log(
                 job.quiet,
                 format!(
-                    "fast: compact BVNDF ({} lobes, {} directions, pairs from {} surface points, {} seen rays per direction, {}, {:.2} MB) built in {:.1} ms",
+                    "fast: compact BVNDF ({} lobes, {} directions ({} polar nodes to {:.1}°), pairs from {} surface points, {} seen rays per direction, {}, {:.2} MB) built in {:.1} ms",
                     geo.clusters,
                     geo.grid.len(),
+                    geo.grid.thetas.len(),
+                    geo.grid.thetas.last().map_or(0.0, |t| t.to_degrees()),
                     job.bvndf.points,
                     job.bvndf
                         .seen_rays

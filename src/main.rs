@@ -75,6 +75,19 @@ struct BvndfArgs {
     /// bumps is lit less than their tops; 1: the view and the light independent).
     #[arg(long, default_value_t = BvndfConfig::forward().seen_bands as u32, value_parser = clap::value_parser!(u32).range(1..=64))]
     seen_bands: u32,
+    /// The last polar node of the direction grid, in degrees, 45 to 89.99 (above 88.5 the last
+    /// three nodes are spaced evenly in the ray slope from 88.5° to it; views beyond it take its
+    /// data; 88.5 in the libraries).
+    #[arg(long, default_value_t = BvndfConfig::forward().last_theta_deg, value_parser = last_theta)]
+    last_theta: f64,
+}
+
+fn last_theta(s: &str) -> std::result::Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if (45.0..=89.99).contains(&v) => Ok(v),
+        Ok(v) => Err(format!("{v} is not in 45..=89.99 (degrees)")),
+        Err(e) => Err(format!("{e}; expected degrees in 45..=89.99")),
+    }
 }
 
 impl BvndfArgs {
@@ -88,6 +101,7 @@ impl BvndfArgs {
             seen_rays: self.seen_rays as usize,
             seen_phi: self.seen_phi as usize,
             seen_bands: self.seen_bands as usize,
+            last_theta_deg: self.last_theta,
         }
     }
 }

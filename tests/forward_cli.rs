@@ -193,6 +193,12 @@ fn nonsense_input_is_rejected_clearly() {
         a.extend([opt.to_string(), "0".to_string()]);
         run(a, &[opt, "1..=64"]);
     }
+    // The grid's last polar node must lie below the horizon.
+    for bad in ["90", "-1", "x"] {
+        let mut a = base("vgroove:n=16", "lambert:albedo=0.5", pairs_s);
+        a.extend(["--last-theta".to_string(), bad.to_string()]);
+        run(a, &["--last-theta", "45..=89.99"]);
+    }
     // A grid whose table cannot fit in memory (8192 directions, 64 clusters: about 150 GB)
     // is refused before it is built, naming the options and the sizes.
     let mut a = base("vgroove:n=16", "lambert:albedo=0.5", pairs_s);
@@ -487,9 +493,10 @@ fn npy_heightmap_is_scale_free() {
     }
 }
 
-/// The fast method's build settings are the user's: `--n-phi`, `--rays` and `--seen-rays` reach
+/// The fast method's build settings are the user's: `--n-theta`, `--n-phi`, `--points`,
+/// `--seen-rays` and `--last-theta` reach
 /// the compact BVNDF (its log names them), and a coarser grid changes the answer only a little
-/// (both are estimates of the same fbar).
+/// up to 85° (both are estimates of the same fbar).
 #[test]
 fn fast_build_settings_reach_the_bvndf() {
     let dir = TestDir::new("fwdcli-fast-settings");
@@ -514,8 +521,11 @@ fn fast_build_settings_reach_the_bvndf() {
         (stderr, fbar)
     };
     let (log_default, default) = run(&[]);
-    // 24 polar nodes × 40 azimuths.
-    assert!(log_default.contains("960 directions"), "{log_default}");
+    // 25 polar nodes × 40 azimuths, the last three beyond 88.5°.
+    assert!(
+        log_default.contains("1000 directions (25 polar nodes to 89.9°)"),
+        "{log_default}"
+    );
     let (log_fine, fine) = run(&[
         "--n-theta",
         "10",
@@ -525,14 +535,20 @@ fn fast_build_settings_reach_the_bvndf() {
         "16384",
         "--seen-rays",
         "0",
+        "--last-theta",
+        "88.5",
     ]);
-    assert!(log_fine.contains("160 directions"), "{log_fine}");
+    assert!(
+        log_fine.contains("160 directions (10 polar nodes to 88.5°)"),
+        "{log_fine}"
+    );
     assert!(
         log_fine.contains("16384 surface points, 0 seen rays"),
         "{log_fine}"
     );
     assert_ne!(default, fine);
-    for (a, b) in default.iter().zip(&fine) {
+    // Up to 85° (the first three pairs); beyond 88.5° the coarse grid repeats its last row.
+    for (a, b) in default.iter().zip(&fine).take(3) {
         assert!((a - b).abs() <= 0.1 * b.abs().max(1e-3), "{a} vs {b}");
     }
 }
