@@ -552,3 +552,72 @@ fn fast_build_settings_reach_the_bvndf() {
         assert!((a - b).abs() <= 0.1 * b.abs().max(1e-3), "{a} vs {b}");
     }
 }
+
+/// The progress lines of `forward` (plain lines per tenth, as stderr is not a terminal here):
+/// every bar's count never goes back and its last line reaches its length (the exact method's
+/// bar counts each pair from each end); `-q` prints none.
+#[test]
+fn progress_lines_count_every_step_and_never_go_back() {
+    let dir = TestDir::new("fwdcli-progress");
+    let pairs = write_pairs(&dir);
+    let pairs = pairs.to_str().unwrap();
+    let n_pairs = PAIRS.lines().count() - 1;
+    // `(label, position, length)` of every progress line.
+    let bars = |stderr: &str| -> Vec<(String, u64, u64)> {
+        stderr
+            .lines()
+            .filter_map(|l| {
+                let (label, rest) = l.rsplit_once(": ")?;
+                let count = rest.split_whitespace().next()?;
+                let (pos, len) = count.split_once('/')?;
+                Some((label.to_string(), pos.parse().ok()?, len.parse().ok()?))
+            })
+            .collect()
+    };
+    let check = |stderr: &str, want: &[&str]| {
+        let lines = bars(stderr);
+        for label in want {
+            let mine: Vec<_> = lines.iter().filter(|(l, _, _)| l == label).collect();
+            assert!(!mine.is_empty(), "no line of '{label}' in {stderr}");
+            assert!(
+                mine.windows(2)
+                    .all(|w| w[0].1 <= w[1].1 && w[0].2 <= w[1].2),
+                "'{label}' went back: {mine:?}"
+            );
+            let last = mine[mine.len() - 1];
+            assert_eq!(
+                last.1, last.2,
+                "'{label}' did not end at its length: {mine:?}"
+            );
+        }
+        lines
+    };
+    let geometry = ["--geometry", "bumps:n=16", "--material", "ggx:alpha=0.2"];
+    let mut args = geometry.to_vec();
+    args.extend([
+        "--pairs",
+        pairs,
+        "--method",
+        "exact",
+        "--exact-samples",
+        "2",
+    ]);
+    let (ok, _, _, stderr) = forward(&args);
+    assert!(ok, "{stderr}");
+    let lines = check(&stderr, &["exact: pairs (from each end)"]);
+    assert_eq!(lines.last().unwrap().2, 2 * n_pairs as u64);
+    let mut args = geometry.to_vec();
+    args.extend(["--pairs", pairs, "--method", "fast"]);
+    let (ok, _, _, stderr) = forward(&args);
+    assert!(ok, "{stderr}");
+    check(
+        &stderr,
+        &[
+            "compact BVNDF: seen areas (directions)",
+            "compact BVNDF: horizons (facets)",
+        ],
+    );
+    args.push("-q");
+    let (ok, _, _, stderr) = forward(&args);
+    assert!(ok && stderr.is_empty(), "{stderr}");
+}
