@@ -45,8 +45,9 @@ struct BvndfArgs {
     /// evaluation time, less accurate on tall rough surfaces). `--lobes` is an alias.
     #[arg(long, alias = "lobes", default_value_t = BvndfConfig::forward().clusters as u16, value_parser = clap::value_parser!(u16).range(1..=64))]
     clusters: u16,
-    /// Polar nodes of the direction grid (10 in the libraries: a build about 3× shorter, less
-    /// accurate at grazing angles on tall grooves; 16: 1.7× shorter, a third of the memory).
+    /// Polar nodes of the direction grid, the last three beyond 88.5° when --last-theta is (10
+    /// to 88.5° in the libraries: a build about 3× shorter, less accurate at grazing angles on
+    /// tall grooves; 16: 1.7× shorter, a third of the memory).
     #[arg(long, default_value_t = BvndfConfig::forward().n_theta as u16, value_parser = clap::value_parser!(u16).range(2..=64))]
     n_theta: u16,
     /// Azimuths of the direction grid (16 is the libraries' grid: a build many times shorter, less
