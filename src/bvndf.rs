@@ -107,7 +107,7 @@ impl Default for BvndfConfig {
 impl BvndfConfig {
     /// The `forward` command's default: 25 polar nodes, the libraries' spacing of 24 to 88.5°
     /// but its last two, then three to 89.9° ([`crate::dirgrid::DirGrid::to`]: views between
-    /// 88.5° and the horizon were 18–400 % off with the last node at 88.5°), and 40 azimuths
+    /// 88.5° and the horizon were 18–415 % off with the last node at 88.5°), and 40 azimuths
     /// (grazing views on
     /// grooves: 16 polar nodes left tall sine grooves at 3.3 % up to 85°; at grazing views over
     /// tall bumps, 32 azimuths left 3.1 % up to 85°, 40 give 2.5 %; 40 keep the axes and the

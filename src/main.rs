@@ -51,7 +51,7 @@ struct BvndfArgs {
     #[arg(long, default_value_t = BvndfConfig::forward().n_theta as u16, value_parser = clap::value_parser!(u16).range(2..=64))]
     n_theta: u16,
     /// Azimuths of the direction grid (16 is the libraries' grid: a build many times shorter, less
-    /// accurate at grazing angles along grooves; 32, the previous default: up to 60 % shorter,
+    /// accurate at grazing angles along grooves; 32, an earlier default: up to 60 % shorter,
     /// tall bumps at grazing views 3.1 % from the exact method up to 85° instead of 2.5 %).
     #[arg(long, default_value_t = BvndfConfig::forward().n_phi as u16, value_parser = clap::value_parser!(u16).range(3..=128))]
     n_phi: u16,
