@@ -441,14 +441,11 @@ pub fn finalize(
         .iter()
         .map(|c| super::rotated_samples(look, &lights, c.psi_deg.to_radians(), &opt.sampling))
         .collect();
-    let bar = match opt.final_eval {
-        Final::Exact => super::final_bar(
-            opt,
-            cands.len(),
-            sampled.first().map_or(0, |s| s.0.pairs.len()),
-        ),
-        _ => crate::library::progress::Bar::hidden(),
-    };
+    let bar = super::final_bar(
+        opt,
+        cands.len(),
+        sampled.first().map_or(0, |s| s.0.pairs.len()),
+    );
     for (c, (samples, target)) in cands.iter_mut().zip(sampled) {
         let (hf, full) = match built.entry(c.geometry_spec.clone()) {
             Entry::Occupied(e) => e.into_mut(),

@@ -410,14 +410,11 @@ pub fn solve_with(
     // Stage 3: the final evaluator.
     let t2 = Instant::now();
     let colour = crate::library::items::average_colour(material);
-    let bar = match opt.final_eval {
-        Final::Exact => super::final_bar(
-            opt,
-            reranked.len(),
-            rots.first().map_or(0, |r| r.samples.pairs.len()),
-        ),
-        _ => crate::library::progress::Bar::hidden(),
-    };
+    let bar = super::final_bar(
+        opt,
+        reranked.len(),
+        rots.first().map_or(0, |r| r.samples.pairs.len()),
+    );
     let mut out: Vec<Candidate> = reranked
         .iter()
         .map(

@@ -145,16 +145,20 @@ impl Default for SolveOptions {
 }
 
 /// The bar of a final exact evaluation of `evaluations` sets of `samples` pairs (each pair
-/// shaded from both ends), from the options' progress.
+/// shaded from both ends), from the options' progress; hidden when the final evaluation is not
+/// the exact one.
 pub(crate) fn final_bar(
     opt: &SolveOptions,
     evaluations: usize,
     samples: usize,
 ) -> crate::library::progress::Bar {
-    opt.progress.bar(
-        (2 * evaluations * samples) as u64,
-        "solve: final evaluation (exact; pairs from each end)",
-    )
+    match opt.final_eval {
+        Final::Exact => opt.progress.bar(
+            (2 * evaluations * samples) as u64,
+            "solve: final evaluation (exact; pairs from each end)",
+        ),
+        _ => crate::library::progress::Bar::hidden(),
+    }
 }
 
 /// One answer: a geometry (rotated by `psi_deg`), a material and its colour, with its errors.
