@@ -53,6 +53,7 @@ pub mod sampling;
 pub mod solve;
 pub mod store;
 pub mod tomlfile;
+pub mod uf8;
 pub mod validate;
 
 // Files and commands.

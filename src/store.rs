@@ -30,6 +30,8 @@ const EMPTY_SUM: &str = "00000000000000000000000000000000";
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Dtype {
+    /// The unsigned 8-bit float of [`crate::uf8`].
+    UF8,
     F16,
     F32,
     F64,
@@ -39,6 +41,7 @@ pub enum Dtype {
 impl Dtype {
     pub fn size(self) -> usize {
         match self {
+            Dtype::UF8 => 1,
             Dtype::F16 => 2,
             Dtype::F32 | Dtype::U32 => 4,
             Dtype::F64 => 8,
@@ -721,6 +724,10 @@ impl ArrayFile {
     }
     pub fn f16s(&self) -> Result<&[half::f16]> {
         self.typed(Dtype::F16)
+    }
+    /// The bytes of a `uf8` array ([`crate::uf8::decode`] gives their values).
+    pub fn uf8s(&self) -> Result<&[u8]> {
+        self.typed(Dtype::UF8)
     }
 }
 

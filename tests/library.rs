@@ -674,3 +674,66 @@ fn half_precision_light_lobes_match_the_f32_records_in_half_the_bytes() {
     biscale::library::commands::refit(&ds, None, true, true).unwrap();
     assert_eq!(data_files(&ds), data_files(&dh));
 }
+
+#[test]
+fn byte_binned_columns_are_within_a_32nd_of_half_precision_and_the_solvers_read_them() {
+    use biscale::library::profile::GammaPrecision;
+    use biscale::solve::{Final, Look, SolveOptions};
+    let (p, base) = tiny();
+    assert_eq!(p.geometry.gamma_precision, GammaPrecision::Half);
+    let mut byte = p.clone();
+    byte.geometry.gamma_precision = GammaPrecision::Byte;
+    let (dh, db) = (
+        TestDir::new("lib-gamma-half"),
+        TestDir::new("lib-gamma-byte"),
+    );
+    build_all(&p, &base, &dh, &QUIET, false, false).unwrap();
+    build_all(&byte, &base, &db, &QUIET, false, false).unwrap();
+    let (lh, lb) = (Library::open(&dh).unwrap(), Library::open(&db).unwrap());
+    let (ch, cb) = (lh.binned_columns().unwrap(), lb.binned_columns().unwrap());
+    assert_eq!(ch.file.header.dtype, biscale::store::Dtype::F16);
+    assert_eq!(cb.file.header.dtype, biscale::store::Dtype::UF8);
+    assert_eq!(2 * cb.file.header.data_bytes(), ch.file.header.data_bytes());
+    // Every entry within a 32nd of the half-precision one (which is itself within 2⁻¹¹ of the
+    // traced value both were rounded from), or below the byte's smallest normal.
+    for j in 0..lh.manifest.geometries {
+        let (a, b) = (ch.column(j).unwrap(), cb.column(j).unwrap());
+        for (i, (&h, &v)) in a.iter().zip(&b).enumerate() {
+            assert!(
+                (v - h).abs() <= h / 32.0 * 1.001 + 2f32.powi(-18),
+                "geometry {j}, row {i}: half {h}, byte {v}"
+            );
+        }
+    }
+    // The light lobes and the materials are the same bytes; only the binned matrix and what
+    // was computed from it differ.
+    let same =
+        |rel: &str| std::fs::read(dh.join(rel)).unwrap() == std::fs::read(db.join(rel)).unwrap();
+    for rel in [
+        "geometry/lobes.bsa",
+        "geometry/lobe-heads.bsa",
+        "material/prefiltered.bsa",
+    ] {
+        assert!(same(rel), "{rel}");
+    }
+    // The geometry solver reads the byte columns for its second ranking and finds the same
+    // best geometry.
+    let look = Look::from_spec("ward:ax=0.3,ay=0.08", Default::default(), None).unwrap();
+    let mat = biscale::material::parse_material("ggx:alpha=0.1,f0=0.9").unwrap();
+    let opt = SolveOptions {
+        k: 3,
+        pool: 6,
+        psi: 2,
+        final_eval: Final::Fast,
+        ..Default::default()
+    };
+    let a = biscale::solve::geometry::solve(&lh, &look, &mat, "ggx", None, &opt).unwrap();
+    let b = biscale::solve::geometry::solve(&lb, &look, &mat, "ggx", None, &opt).unwrap();
+    assert!(lb.reads().join(" ").contains("geometry/gamma.bsa"));
+    assert_eq!(a.candidates[0].geometry, b.candidates[0].geometry);
+    assert!((a.candidates[0].error - b.candidates[0].error).abs() < 1e-9);
+    // A rebuild gives the same bytes.
+    let db2 = TestDir::new("lib-gamma-byte-2");
+    build_all(&byte, &base, &db2, &QUIET, false, false).unwrap();
+    assert_eq!(data_files(&db), data_files(&db2));
+}

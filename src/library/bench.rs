@@ -68,7 +68,7 @@ pub fn speed(profile: &str, sample: usize, progress: &Progress) -> Result<String
         .collect::<Result<Vec<()>>>()?;
     let tm = t.elapsed().as_secs_f64() / msample.len().max(1) as f64;
     let threads = rayon::current_num_threads();
-    let gamma_mb = layout.rows() as f64 * 2.0 / 1e6;
+    let gamma_mb = (layout.rows() * prof.geometry.gamma_precision.dtype().size()) as f64 / 1e6;
     let (k, record) = (
         prof.geometry.lobe_clusters,
         crate::lightlobes::record_len(&layout, prof.geometry.lobe_clusters),
@@ -137,11 +137,10 @@ pub fn accuracy(
     let items = lib.geometry_items()?;
     let mats = lib.material_items()?;
     let layout = lib.gamma_layout();
-    let gamma = lib.array("geometry/gamma.bsa")?;
+    let gamma = lib.binned_columns()?;
     let reps = lib.array("geometry/representatives.bsa")?;
     let xs = lib.array("geometry/x.bsa")?;
-    let (gamma, reps, xs) = (gamma.f16s()?, reps.u32s()?, xs.f32s()?);
-    let rows = layout.rows();
+    let (reps, xs) = (reps.u32s()?, xs.f32s()?);
     let c = reps.len();
     if items.is_empty() || mats.is_empty() {
         return Err(Error::new(
@@ -149,12 +148,10 @@ pub fn accuracy(
             "the library is empty",
         ));
     }
-    let column = |j: usize| -> Vec<f32> {
-        let mut v = vec![0f32; rows];
-        crate::gamma::ColumnElement::to_f32s(&gamma[j * rows..(j + 1) * rows], &mut v);
-        v
-    };
-    let rep_cols: Vec<Vec<f32>> = reps.iter().map(|&k| column(k as usize)).collect();
+    let rep_cols: Vec<Vec<f32>> = reps
+        .iter()
+        .map(|&k| gamma.column(k as usize))
+        .collect::<Result<_>>()?;
     let views: Vec<Vec3> = (0..10)
         .map(|k| {
             let u = (k as f64 + 0.5) / 10.0;
@@ -198,7 +195,7 @@ pub fn accuracy(
             .collect::<Result<_>>()?;
         let refs: Vec<&Material> = chosen.iter().collect();
         let exact = ExactEvaluator::new(&hf, 2).fbar_many(&refs, &dirs);
-        let own = column(j);
+        let own = gamma.column(j)?;
         let own_lobes = lobes.get(j)?;
         for ((m, ex), &mi) in chosen.iter().zip(&exact).zip(idx) {
             let pf = crate::solve::material_prefiltered(&lib, m, Some(mi))?;

@@ -291,7 +291,7 @@ fn build(
         stream,
         |it| {
             let (col, lobes) = geometry_data(it, &layout, prof)?;
-            let mut out = vec![bytemuck::cast_slice(&col).to_vec()];
+            let mut out = vec![col];
             out.extend(lobe_bytes(it, &layout, prof, &lobes)?);
             Ok(out)
         },
@@ -536,18 +536,18 @@ fn build_chunks<T: Sync>(
     Ok((built, t.elapsed().as_secs_f64()))
 }
 
-/// One geometry item's library data, from one pass of view rays: its binned BVNDF column in
-/// half precision and its light-lobe record ([`crate::lightlobes`]).
+/// One geometry item's library data, from one pass of view rays: the bytes of its binned BVNDF
+/// column in the profile's `gamma_precision` and its light-lobe record ([`crate::lightlobes`]).
 pub fn geometry_data(
     it: &GeometryItem,
     layout: &GammaLayout,
     prof: &LibraryProfile,
-) -> Result<(Vec<half::f16>, Vec<f32>)> {
+) -> Result<(Vec<u8>, Vec<f32>)> {
     let hf = parse_generator(&it.spec)
         .and_then(|g| g.build())
         .map_err(|e| e.within(format!("geometry item {}", it.index)))?;
     let (col, lobes) = layout.trace(&hf, prof.geometry.rays, prof.geometry.lobe_clusters);
-    Ok((col.into_iter().map(half::f16::from_f32).collect(), lobes))
+    Ok((prof.geometry.gamma_precision.encode(&col), lobes))
 }
 
 /// The stored form of a geometry's light-lobe record `lobes`, one byte vector per light-lobe
@@ -634,7 +634,7 @@ impl<'a> ItemMatrix<'a> {
 /// An element type the library matrices are read into: converted from the stored half or
 /// single precision slice to slice (vectorised; element by element, half's f16 conversion was
 /// a call per value and 70 % of a default library build).
-trait ReadElement: Copy + Default + std::ops::MulAssign {
+trait ReadElement: Copy + Default + std::ops::MulAssign + From<f32> {
     fn from_f16s(src: &[half::f16], dst: &mut [Self]);
     fn from_f32s(src: &[f32], dst: &mut [Self]);
     fn from_f64(v: f64) -> Self;
@@ -699,6 +699,16 @@ impl ItemMatrix<'_> {
         let at = |j: usize| (j * self.len + rows.start) * size;
         let mut err = None;
         match self.file.header.dtype {
+            Dtype::UF8 => {
+                let mut src = vec![0u8; rows.len()];
+                for (jj, j) in cols.clone().enumerate() {
+                    if let Err(e) = self.file.read_data(at(j), &mut src) {
+                        err = Some(e);
+                        break;
+                    }
+                    put(jj, &mut |dst| crate::uf8::decode_into(&src, dst));
+                }
+            }
             Dtype::F16 => {
                 let mut src = vec![half::f16::ZERO; rows.len()];
                 for (jj, j) in cols.clone().enumerate() {
@@ -805,7 +815,7 @@ fn parts(prof: &LibraryProfile, geometries: usize, materials: usize) -> Vec<Part
         chunk_name: "gamma-chunk",
         joined: "geometry/gamma.bsa",
         name: "gamma",
-        dtype: Dtype::F16,
+        dtype: prof.geometry.gamma_precision.dtype(),
         items: geometries,
         len: layout.rows(),
     }];

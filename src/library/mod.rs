@@ -540,6 +540,15 @@ impl Library {
         build::gamma_layout(&self.profile)
     }
 
+    /// The geometries' binned BVNDF columns (`geometry/gamma.bsa`), read one column at a time
+    /// in whatever precision the library stores them.
+    pub fn binned_columns(&self) -> Result<BinnedColumns> {
+        Ok(BinnedColumns {
+            file: self.array("geometry/gamma.bsa")?,
+            rows: self.gamma_layout().rows(),
+        })
+    }
+
     /// The geometry CX weights to combine with the representatives' light-lobe values:
     /// `geometry/x-lobes.bsa` ([`lobefit`]: fitted to the light lobes) when the library has it,
     /// else `geometry/x.bsa` (fitted to the binned columns).
@@ -590,6 +599,37 @@ impl Library {
             }
         }
         Ok(self.manifest.files.len())
+    }
+}
+
+/// The binned BVNDF columns of a library's geometries (`geometry/gamma.bsa`: `f16`, or the
+/// 8-bit [`crate::uf8`] of `geometry.gamma_precision = "byte"`).
+pub struct BinnedColumns {
+    pub file: Arc<ArrayFile>,
+    pub rows: usize,
+}
+
+impl BinnedColumns {
+    /// Column `j` (geometry `j`) in `f32`.
+    pub fn column(&self, j: usize) -> Result<Vec<f32>> {
+        let missing = || {
+            Error::new(
+                self.file.path.display().to_string(),
+                format!("no column for geometry {j}"),
+            )
+        };
+        let range = j * self.rows..(j + 1) * self.rows;
+        let mut out = vec![0f32; self.rows];
+        match self.file.header.dtype {
+            Dtype::UF8 => {
+                crate::uf8::decode_into(self.file.uf8s()?.get(range).ok_or_else(missing)?, &mut out)
+            }
+            _ => crate::gamma::ColumnElement::to_f32s(
+                self.file.f16s()?.get(range).ok_or_else(missing)?,
+                &mut out,
+            ),
+        }
+        Ok(out)
     }
 }
 

@@ -52,6 +52,12 @@ pub struct GeometrySection {
     /// refit --half-lobes` converts them).
     #[serde(default, skip_serializing_if = "LobePrecision::is_half")]
     pub lobe_precision: LobePrecision,
+    /// How the binned BVNDF columns are stored: `half` (the default, `f16`) or `byte` (the
+    /// 8-bit float of [`crate::uf8`], within 3.1 % of each entry, half the bytes: the `paper`
+    /// profile's 56 GB matrix in 28 GB). Left out of the canonical profile when `half`, so
+    /// profiles and libraries from before the key keep their hashes.
+    #[serde(default, skip_serializing_if = "GammaPrecision::is_half")]
+    pub gamma_precision: GammaPrecision,
     #[serde(default)]
     pub family: Vec<GeometryFamily>,
 }
@@ -72,6 +78,38 @@ pub enum LobePrecision {
 impl LobePrecision {
     pub fn is_half(&self) -> bool {
         *self == LobePrecision::Half
+    }
+}
+
+/// The stored precision of the binned BVNDF columns (`geometry.gamma_precision`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum GammaPrecision {
+    #[default]
+    Half,
+    Byte,
+}
+
+impl GammaPrecision {
+    pub fn is_half(&self) -> bool {
+        *self == GammaPrecision::Half
+    }
+    /// The array element type of `geometry/gamma.bsa`.
+    pub fn dtype(self) -> crate::store::Dtype {
+        match self {
+            GammaPrecision::Half => crate::store::Dtype::F16,
+            GammaPrecision::Byte => crate::store::Dtype::UF8,
+        }
+    }
+    /// A binned column in this precision, as the array's bytes.
+    pub fn encode(self, col: &[f32]) -> Vec<u8> {
+        match self {
+            GammaPrecision::Half => {
+                let h: Vec<half::f16> = col.iter().map(|&v| half::f16::from_f32(v)).collect();
+                bytemuck::cast_slice(&h).to_vec()
+            }
+            GammaPrecision::Byte => crate::uf8::encode_all(col),
+        }
     }
 }
 
@@ -630,6 +668,18 @@ mod tests {
             }
         );
         assert_eq!(pm.geometry.family.len(), paper.geometry.family.len());
+        // The paper's library and its fractions keep their binned columns in one byte (to fit
+        // on one machine's disk); the smaller profiles in half precision.
+        for n in ["paper", "paper2", "paper4"] {
+            let (p, _) = LibraryProfile::load(n).unwrap();
+            assert_eq!(p.geometry.gamma_precision, GammaPrecision::Byte, "{n}");
+            assert!(p.canonical().contains("gamma_precision = \"byte\""), "{n}");
+        }
+        for n in ["tiny", "default", "paper16"] {
+            let (p, _) = LibraryProfile::load(n).unwrap();
+            assert_eq!(p.geometry.gamma_precision, GammaPrecision::Half, "{n}");
+            assert!(!p.canonical().contains("gamma_precision"), "{n}");
+        }
     }
 
     #[test]
@@ -647,6 +697,15 @@ mod tests {
             .err()
             .unwrap();
         assert!(e.to_string().contains("p.toml"), "{e}");
+        let quarter = text.replace(
+            "[geometry]\n",
+            "[geometry]\ngamma_precision = \"quarter\"\n",
+        );
+        let e = LibraryProfile::parse(&quarter, "p.toml").err().unwrap();
+        assert!(
+            e.to_string().contains("p.toml") && e.to_string().contains("gamma_precision"),
+            "{e}"
+        );
         let bad = tiny
             .canonical()
             .replace("cx_method = \"pivoted-qr\"", "cx_method = \"svd\"");

@@ -56,10 +56,7 @@ enum ItemData {
         lobes: GeometryLobes,
         pf: Prefiltered,
     },
-    Binned {
-        gamma: std::sync::Arc<crate::store::ArrayFile>,
-        rows: usize,
-    },
+    Binned(crate::library::BinnedColumns),
 }
 
 impl ItemData {
@@ -67,11 +64,9 @@ impl ItemData {
     fn values(&self, j: usize, r: &Rotation) -> Result<Vec<f64>> {
         match (self, &r.response) {
             (ItemData::Lobes { lobes, pf }, _) => Ok(lobes.get(j)?.fbar(pf, &r.at)),
-            (ItemData::Binned { gamma, rows }, Some(resp)) => {
-                Ok(resp.apply(&gamma.f16s()?[j * rows..(j + 1) * rows]))
-            }
-            (ItemData::Binned { gamma, .. }, None) => Err(crate::error::Error::new(
-                gamma.path.display().to_string(),
+            (ItemData::Binned(gamma), Some(resp)) => Ok(resp.apply(&gamma.column(j)?)),
+            (ItemData::Binned(gamma), None) => Err(crate::error::Error::new(
+                gamma.file.path.display().to_string(),
                 "internal: binned search without a material response",
             )),
         }
@@ -202,17 +197,14 @@ pub fn solve_with(
             pf: material_prefiltered(lib, material, material_index)?,
         }
     } else {
-        ItemData::Binned {
-            gamma: lib.array("geometry/gamma.bsa")?,
-            rows: layout.rows(),
-        }
+        ItemData::Binned(lib.binned_columns()?)
     };
     let rots: Vec<Rotation> = (0..opt.psi.max(1))
         .map(|i| {
             let psi = psi_angle(i, opt.psi);
             let (samples, target) = rotated_samples(look, &layout.lights, psi, &opt.sampling);
             let response = match data {
-                ItemData::Binned { .. } => Some(Response::new(&layout, material, &samples.pairs)),
+                ItemData::Binned(_) => Some(Response::new(&layout, material, &samples.pairs)),
                 ItemData::Lobes { .. } => None,
             };
             Rotation {
@@ -277,22 +269,11 @@ pub fn solve_with(
     // The second ranking: the representatives' binned columns with the material's response,
     // the linear model the CX weights were fitted to (same (rotation, item) layout).
     if let (ItemData::Lobes { pf, .. }, true) = (&data, opt.binned_search) {
-        let gamma = lib.array("geometry/gamma.bsa")?;
-        let (g16, rows) = (gamma.f16s()?, layout.rows());
+        let gamma = lib.binned_columns()?;
         let resp = Response::with_table(&layout, material, pf, &shared.pairs);
         let b: Vec<Vec<f64>> = reps
             .par_iter()
-            .map(|&k| {
-                let k = k as usize;
-                g16.get(k * rows..(k + 1) * rows)
-                    .map(|c| resp.apply(c))
-                    .ok_or_else(|| {
-                        crate::error::Error::new(
-                            gamma.path.display().to_string(),
-                            format!("no column for representative {k}"),
-                        )
-                    })
-            })
+            .map(|&k| Ok(resp.apply(&gamma.column(k as usize)?)))
             .collect::<Result<_>>()?;
         let binned =
             search_errors_multi(shared, &targets, &b, xs, items.len(), rescore, anyb).concat();
