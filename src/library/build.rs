@@ -633,7 +633,8 @@ impl<'a> ItemMatrix<'a> {
 
 /// An element type the library matrices are read into: converted from the stored half or
 /// single precision slice to slice (vectorised; element by element, half's f16 conversion was
-/// a call per value and 70 % of a default library build).
+/// a call per value and 70 % of a default library build), or from `uf8` bytes through their
+/// table of values ([`crate::uf8::decode_into`]).
 trait ReadElement: Copy + Default + std::ops::MulAssign + From<f32> {
     fn from_f16s(src: &[half::f16], dst: &mut [Self]);
     fn from_f32s(src: &[f32], dst: &mut [Self]);
