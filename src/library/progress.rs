@@ -65,8 +65,11 @@ struct Plain {
     what: String,
     len: AtomicU64,
     pos: AtomicU64,
-    /// Tenths already reported.
+    /// Tenths already reported; changed only under `printing`.
     reported: AtomicU64,
+    /// Held while a line is decided and printed, so that lines come out in the order of their
+    /// counts: two threads that each crossed a tenth could otherwise print 5 before 4.
+    printing: Mutex<()>,
     start: Instant,
     sink: Sink,
 }
@@ -75,24 +78,30 @@ impl Plain {
     fn inc(&self, n: u64) {
         let pos = self.pos.fetch_add(n, Ordering::Relaxed) + n;
         let len = self.len.load(Ordering::Relaxed);
+        if (pos.min(len) * 10) / len.max(1) <= self.reported.load(Ordering::Relaxed) {
+            return;
+        }
+        let Ok(_printing) = self.printing.lock() else {
+            return;
+        };
+        // The count as it stands now, under the lock: each line's count is at least the one
+        // before it.
+        let (pos, len) = (
+            self.pos.load(Ordering::Relaxed).max(pos),
+            self.len.load(Ordering::Relaxed),
+        );
         let tenth = (pos.min(len) * 10) / len.max(1);
-        let mut last = self.reported.load(Ordering::Relaxed);
-        while tenth > last {
-            match self
-                .reported
-                .compare_exchange(last, tenth, Ordering::Relaxed, Ordering::Relaxed)
-            {
-                Ok(_) => {
-                    self.sink.line(self.line(pos));
-                    return;
-                }
-                Err(now) => last = now,
-            }
+        if tenth > self.reported.load(Ordering::Relaxed) {
+            self.reported.store(tenth, Ordering::Relaxed);
+            self.sink.line(self.line(pos));
         }
     }
 
     /// `n` more items: the tenths are counted again from where the bar now stands.
     fn inc_length(&self, n: u64) {
+        let Ok(_printing) = self.printing.lock() else {
+            return;
+        };
         let len = self.len.fetch_add(n, Ordering::Relaxed) + n;
         let pos = self.pos.load(Ordering::Relaxed);
         self.reported
@@ -121,6 +130,9 @@ impl Plain {
     }
 
     fn finish(&self) {
+        let Ok(_printing) = self.printing.lock() else {
+            return;
+        };
         // Report the end unless the last tenth was already reported.
         if self.reported.swap(10, Ordering::Relaxed) < 10 {
             self.sink.line(self.line(self.pos.load(Ordering::Relaxed)));
@@ -302,6 +314,7 @@ fn plain_bar(len: u64, what: &str, sink: Sink) -> Plain {
         len: AtomicU64::new(len),
         pos: AtomicU64::new(0),
         reported: AtomicU64::new(0),
+        printing: Mutex::new(()),
         start: Instant::now(),
         sink,
     }
@@ -314,6 +327,43 @@ mod tests {
     fn captured() -> (Sink, Arc<Mutex<Vec<String>>>) {
         let v = Arc::new(Mutex::new(Vec::new()));
         (Sink::Capture(v.clone()), v)
+    }
+
+    #[test]
+    fn plain_lines_from_many_threads_never_go_back() {
+        // Threads that cross tenths together print in the order of their counts (before the
+        // lock, `forward`'s "exact: pairs" once printed 5/10 before 4/10).
+        for round in 0..50u64 {
+            let (sink, lines) = captured();
+            let len = 40 + round;
+            let b = Bar(BarKind::Plain(plain_bar(len, "pairs", sink)));
+            std::thread::scope(|s| {
+                for t in 0..4 {
+                    let b = &b;
+                    s.spawn(move || {
+                        for _ in (t..len).step_by(4) {
+                            b.inc(1);
+                        }
+                    });
+                }
+            });
+            b.finish();
+            let counts: Vec<u64> = lines
+                .lock()
+                .unwrap()
+                .iter()
+                .map(|l| {
+                    l["pairs: ".len()..]
+                        .split('/')
+                        .next()
+                        .unwrap()
+                        .parse()
+                        .unwrap()
+                })
+                .collect();
+            assert!(counts.windows(2).all(|w| w[0] < w[1]), "{counts:?}");
+            assert_eq!(counts.last(), Some(&len), "{counts:?}");
+        }
     }
 
     #[test]
