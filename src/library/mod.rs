@@ -8,7 +8,8 @@
 //! manifest.json                 counts, shapes, compression, checksums, build times (written last)
 //! profile.toml                  the canonical profile it was built from
 //! geometry/items.json           every geometry: index, family, generator spec
-//! geometry/gamma.bsa            f16 [geometries, rows]: binned BVNDF columns (crate::gamma)
+//! geometry/gamma.bsa            f16 [geometries, rows]: binned BVNDF columns (crate::gamma);
+//!                               uf8 (crate::uf8) with geometry.gamma_precision = "byte"
 //! geometry/coords.bsa           f32 [geometries, rank]: SVD coordinates Sigma V^T
 //! geometry/singular.bsa         f32: singular values
 //! geometry/representatives.bsa  u32: CX column indices c(k)
