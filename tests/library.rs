@@ -18,6 +18,21 @@ fn tiny() -> (LibraryProfile, PathBuf) {
     (p, path.parent().unwrap().to_path_buf())
 }
 
+/// `tiny` built as it is in `dirs[0]` and with `edit` in `dirs[1]`: the edited profile, the
+/// profiles' directory and the two libraries.
+fn tiny_two_ways(
+    dirs: [&str; 2],
+    edit: impl FnOnce(&mut LibraryProfile),
+) -> (LibraryProfile, PathBuf, TestDir, TestDir) {
+    let (p, base) = tiny();
+    let mut q = p.clone();
+    edit(&mut q);
+    let (a, b) = (TestDir::new(dirs[0]), TestDir::new(dirs[1]));
+    build_all(&p, &base, &a, &QUIET, false, false).unwrap();
+    build_all(&q, &base, &b, &QUIET, false, false).unwrap();
+    (q, base, a, b)
+}
+
 /// Every file of a library except the manifest (whose `build` section holds times).
 fn data_files(dir: &Path) -> Vec<(String, Vec<u8>)> {
     let mut out = Vec::new();
@@ -621,13 +636,10 @@ fn a_geometry_pilot_keeps_the_energy_in_one_pass_and_shards_still_equal_one_proc
 fn half_precision_light_lobes_match_the_f32_records_in_half_the_bytes() {
     use biscale::library::profile::LobePrecision;
     use biscale::lightlobes::LightPairs;
-    let (p, base) = tiny();
-    assert_eq!(p.geometry.lobe_precision, LobePrecision::Half);
-    let mut single = p.clone();
-    single.geometry.lobe_precision = LobePrecision::Single;
-    let (dh, ds) = (TestDir::new("lib-half"), TestDir::new("lib-single"));
-    build_all(&p, &base, &dh, &QUIET, false, false).unwrap();
-    build_all(&single, &base, &ds, &QUIET, false, false).unwrap();
+    let (_, _, dh, ds) = tiny_two_ways(["lib-half", "lib-single"], |p| {
+        assert_eq!(p.geometry.lobe_precision, LobePrecision::Half);
+        p.geometry.lobe_precision = LobePrecision::Single;
+    });
     let size = |d: &Path, rel: &str| std::fs::metadata(d.join(rel)).map_or(0, |m| m.len());
     let half_bytes = size(&dh, "geometry/lobes.bsa") + size(&dh, "geometry/lobe-heads.bsa");
     let single_bytes = size(&ds, "geometry/lobes.bsa");
@@ -679,16 +691,10 @@ fn half_precision_light_lobes_match_the_f32_records_in_half_the_bytes() {
 fn byte_binned_columns_are_within_a_32nd_of_half_precision_and_the_solvers_read_them() {
     use biscale::library::profile::GammaPrecision;
     use biscale::solve::{Final, Look, SolveOptions};
-    let (p, base) = tiny();
-    assert_eq!(p.geometry.gamma_precision, GammaPrecision::Half);
-    let mut byte = p.clone();
-    byte.geometry.gamma_precision = GammaPrecision::Byte;
-    let (dh, db) = (
-        TestDir::new("lib-gamma-half"),
-        TestDir::new("lib-gamma-byte"),
-    );
-    build_all(&p, &base, &dh, &QUIET, false, false).unwrap();
-    build_all(&byte, &base, &db, &QUIET, false, false).unwrap();
+    let (byte, base, dh, db) = tiny_two_ways(["lib-gamma-half", "lib-gamma-byte"], |p| {
+        assert_eq!(p.geometry.gamma_precision, GammaPrecision::Half);
+        p.geometry.gamma_precision = GammaPrecision::Byte;
+    });
     let (lh, lb) = (Library::open(&dh).unwrap(), Library::open(&db).unwrap());
     let (ch, cb) = (lh.binned_columns().unwrap(), lb.binned_columns().unwrap());
     assert_eq!(ch.file.header.dtype, biscale::store::Dtype::F16);
