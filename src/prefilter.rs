@@ -15,9 +15,11 @@
 
 use crate::frame::{frame_around, Vec3};
 use crate::material::Material;
+use crate::store::ArrayFile;
 use crate::vmf::{vmf_norm, Vmf, KAPPA_MAX};
 use rayon::prelude::*;
 use std::f64::consts::{FRAC_PI_2, PI};
+use std::sync::Arc;
 
 /// Table resolution and quadrature settings.
 #[derive(Debug, Clone, PartialEq)]
@@ -57,8 +59,8 @@ pub struct Prefiltered {
     pub cfg: PrefilterConfig,
     /// The material itself, for lobes so narrow that `F` is the BRDF at the lobe's centre.
     material: Material,
-    /// `[i_half][i_kappa][i_theta_mu][i_phi_mu]`.
-    pub data: Vec<f32>,
+    /// `[i_half][i_kappa][i_theta_mu][i_phi_mu]` ([`Self::table`]).
+    data: Table,
     /// `material.min_lobe_width()`, read for every lobe (the point-lobe test).
     min_width: Option<f64>,
     /// [`Self::resolves_shape`], read for every pair the fast evaluator assembles.
@@ -214,6 +216,45 @@ fn quadrature_at(
     s / local.len().max(1) as f64
 }
 
+/// A prefiltered table's entries: its own, or one material's byte range of a library's mapped
+/// array, read in place (the map lives as long as the `Arc`).
+#[derive(Clone)]
+enum Table {
+    Owned(Vec<f32>),
+    Mapped {
+        file: Arc<ArrayFile>,
+        start: usize,
+        end: usize,
+    },
+}
+
+impl std::fmt::Debug for Table {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Table::Owned(v) => write!(f, "Owned({} entries)", v.len()),
+            Table::Mapped { file, start, end } => {
+                write!(f, "Mapped({}, bytes {start}..{end})", file.path.display())
+            }
+        }
+    }
+}
+
+impl Table {
+    #[inline]
+    fn entries(&self) -> &[f32] {
+        match self {
+            Table::Owned(v) => v,
+            // The range and its alignment were checked when the table was made
+            // ([`Prefiltered::from_array`]); the empty slice is never reached.
+            Table::Mapped { file, start, end } => file
+                .bytes()
+                .get(*start..*end)
+                .and_then(|b| bytemuck::try_cast_slice(b).ok())
+                .unwrap_or(&[]),
+        }
+    }
+}
+
 impl Prefiltered {
     pub fn build(mat: &Material, cfg: &PrefilterConfig) -> Self {
         let (nh, nk, nt, np) = (cfg.n_half, KAPPAS.len(), cfg.n_theta_mu, cfg.n_phi_mu);
@@ -246,7 +287,7 @@ impl Prefiltered {
         Prefiltered {
             cfg: cfg.clone(),
             material: mat.clone(),
-            data,
+            data: Table::Owned(data),
             min_width: mat.min_lobe_width(),
             resolves: resolves_shape(mat),
             sharp: None,
@@ -270,7 +311,13 @@ impl Prefiltered {
             .filter_map(|l| l.support_radius())
             .fold(0.0, f64::max);
         let data = if rest.lobes.is_empty() {
-            vec![0.0; cfg.n_half * KAPPAS.len() * cfg.n_theta_mu * cfg.n_phi_mu]
+            Table::Owned(vec![
+                0.0;
+                cfg.n_half
+                    * KAPPAS.len()
+                    * cfg.n_theta_mu
+                    * cfg.n_phi_mu
+            ])
         } else {
             Self::build(&rest, cfg).data
         };
@@ -297,11 +344,48 @@ impl Prefiltered {
         cfg: &PrefilterConfig,
         data: Vec<f32>,
     ) -> crate::error::Result<Self> {
+        Self::with_table(mat, cfg, Table::Owned(data))
+    }
+
+    /// [`Self::from_table`] for material `index` of a library's `material/prefiltered.bsa`
+    /// (`f32`, tables of `len` entries one after the other), read in place: a solve reads a
+    /// thousand materials' tables, 153 KB each at the paper's settings, and copying them cost
+    /// more than evaluating them.
+    pub fn from_array(
+        mat: &Material,
+        cfg: &PrefilterConfig,
+        file: Arc<ArrayFile>,
+        index: usize,
+        len: usize,
+    ) -> crate::error::Result<Self> {
+        let (start, end) = (index * len * 4, (index + 1) * len * 4);
+        let table = file
+            .f32s()?
+            .get(index * len..(index + 1) * len)
+            .map(|_| Table::Mapped {
+                file: file.clone(),
+                start,
+                end,
+            })
+            .ok_or_else(|| {
+                crate::error::Error::new(
+                    file.path.display().to_string(),
+                    format!("no material {index}"),
+                )
+            })?;
+        Self::with_table(mat, cfg, table)
+    }
+
+    fn with_table(
+        mat: &Material,
+        cfg: &PrefilterConfig,
+        data: Table,
+    ) -> crate::error::Result<Self> {
         let want = cfg.n_half * KAPPAS.len() * cfg.n_theta_mu * cfg.n_phi_mu;
-        if data.len() != want {
+        if data.entries().len() != want {
             return Err(crate::error::Error::new(
                 "prefiltered table",
-                format!("{} entries, the settings need {want}", data.len()),
+                format!("{} entries, the settings need {want}", data.entries().len()),
             ));
         }
         Ok(Prefiltered {
@@ -315,6 +399,11 @@ impl Prefiltered {
         })
     }
 
+    /// The table's entries, `[i_half][i_kappa][i_theta_mu][i_phi_mu]`.
+    pub fn table(&self) -> &[f32] {
+        self.data.entries()
+    }
+
     fn half_node(nh: usize, i: usize) -> f64 {
         FRAC_PI_2 * i as f64 / (nh - 1) as f64
     }
@@ -324,7 +413,7 @@ impl Prefiltered {
     }
 
     pub fn bytes(&self) -> usize {
-        self.data.len() * 4
+        self.table().len() * 4
     }
 
     /// `F(wi, wo; lobe)`: for a lobe narrower than a tenth of a radian and than a tenth of every
@@ -414,6 +503,7 @@ impl Prefiltered {
     /// The multilinear interpolation of the table at `c`.
     fn eval_coords(&self, c: &TableCoords) -> f64 {
         let (nk, nt, np) = (KAPPAS.len(), self.cfg.n_theta_mu, self.cfg.n_phi_mu);
+        let data = self.table();
         let mut s = 0.0;
         for (dh, ah) in [(0, 1.0 - c.wh), (1, c.wh)] {
             if ah == 0.0 {
@@ -429,7 +519,7 @@ impl Prefiltered {
                         continue;
                     }
                     let row = (base + c.it + dt) * np + c.ip;
-                    let v = self.data[row] as f64 * (1.0 - c.wp) + self.data[row + 1] as f64 * c.wp;
+                    let v = data[row] as f64 * (1.0 - c.wp) + data[row + 1] as f64 * c.wp;
                     s += ah * ak * at * v;
                 }
             }

@@ -183,7 +183,7 @@ fn extreme_geometry_and_materials_through_the_fast_evaluator() {
         .map(|s| {
             let p = Prefiltered::build(&parse_material(s).unwrap(), &cfg);
             assert!(
-                p.data.iter().all(|v| v.is_finite() && *v >= 0.0),
+                p.table().iter().all(|v| v.is_finite() && *v >= 0.0),
                 "prefiltered table of {s} has a non-finite or negative entry"
             );
             (s, p)

@@ -475,6 +475,22 @@ fn light_lobe_weights_fit_the_probes_at_least_as_well_as_the_binned_fit_and_refi
             biscale::solve::material_prefiltered(&lib, &mat, Some(m)).unwrap()
         })
         .collect();
+    // A library material's table is read in place: the entries of its row of the array, and a
+    // material past the last is an error naming the file.
+    let all = lib.array("material/prefiltered.bsa").unwrap();
+    let (all, tlen) = (all.f32s().unwrap(), lib.manifest.table_len);
+    let ggx = biscale::material::parse_material("ggx:alpha=0.2").unwrap();
+    for m in [0, mats.len() - 1] {
+        let pf = biscale::solve::material_prefiltered(&lib, &ggx, Some(m)).unwrap();
+        assert_eq!(pf.table(), &all[m * tlen..(m + 1) * tlen]);
+    }
+    let e = biscale::solve::material_prefiltered(&lib, &ggx, Some(mats.len()))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("prefiltered.bsa") && e.contains("no material"),
+        "{e}"
+    );
     let layout = lib.gamma_layout();
     let probes = Probes::with_tables(&layout, tables);
     let lobes = lib.geometry_lobes().unwrap();

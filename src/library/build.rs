@@ -311,7 +311,9 @@ fn build(
         |it| {
             let m = parse_material(&it.spec)
                 .map_err(|e| e.within(format!("material item {}", it.index)))?;
-            Ok(vec![f32_bytes(&Prefiltered::build(&m, &pcfg).data).to_vec()])
+            Ok(vec![
+                f32_bytes(Prefiltered::build(&m, &pcfg).table()).to_vec()
+            ])
         },
     )?;
     rep.materials_built = n;

@@ -17,7 +17,6 @@ use super::{
 use crate::bvndf::LobeSource;
 use crate::error::Result;
 use crate::heightfield::Heightfield;
-use crate::library::build::prefilter_config;
 use crate::library::Library;
 use crate::lightlobes::LightLobes;
 use crate::material::{parse_material, Material};
@@ -68,9 +67,6 @@ pub fn solve(
     let mut stats = SolveStats::default();
     let t0 = Instant::now();
     let items = lib.material_items()?;
-    let cfg = prefilter_config(&lib.profile);
-    let tlen = lib.manifest.table_len;
-    let tables = lib.array("material/prefiltered.bsa")?;
     // The finer selection for this search when the library has one (the coarse set serves the
     // joint search, whose cost grows with its square).
     let prefix = if lib.has("material/search-x.bsa") {
@@ -82,13 +78,7 @@ pub fn solve(
     let xs = lib.array(&format!("{prefix}x.bsa"))?;
     let colours = lib.array("material/colour.bsa")?;
     let shifts = lib.array("material/colour-shifts.bsa")?;
-    let (tables, reps, xs, colours, shifts) = (
-        tables.f32s()?,
-        reps.u32s()?,
-        xs.f32s()?,
-        colours.f32s()?,
-        shifts.f32s()?,
-    );
+    let (reps, xs, colours, shifts) = (reps.u32s()?, xs.f32s()?, colours.f32s()?, shifts.f32s()?);
     let ns = lib.manifest.colours_per_material * 3;
     let layout = lib.gamma_layout();
     let (samples, target) =
@@ -109,8 +99,7 @@ pub fn solve(
     // The geometry is fixed: its lobes at the samples are assembled once for every material.
     let fixed = crate::fast::FixedLobes::new(geo.as_ref(), &super::dir_pairs(&samples));
     let prefiltered = |m: usize| -> Result<Prefiltered> {
-        let mat = parse_material(&items[m].spec)?;
-        Prefiltered::from_table(&mat, &cfg, tables[m * tlen..(m + 1) * tlen].to_vec())
+        super::material_prefiltered(lib, &parse_material(&items[m].spec)?, Some(m))
     };
     let a: Vec<Vec<f64>> = reps
         .par_iter()

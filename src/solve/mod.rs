@@ -272,20 +272,13 @@ pub fn material_prefiltered(
 ) -> Result<Prefiltered> {
     let cfg = crate::library::build::prefilter_config(&lib.profile);
     match index {
-        Some(m) => {
-            let tlen = lib.manifest.table_len;
-            let tables = lib.array("material/prefiltered.bsa")?;
-            let t = tables
-                .f32s()?
-                .get(m * tlen..(m + 1) * tlen)
-                .ok_or_else(|| {
-                    crate::error::Error::new(
-                        tables.path.display().to_string(),
-                        format!("no material {m}"),
-                    )
-                })?;
-            Prefiltered::from_table(mat, &cfg, t.to_vec())
-        }
+        Some(m) => Prefiltered::from_array(
+            mat,
+            &cfg,
+            lib.array("material/prefiltered.bsa")?,
+            m,
+            lib.manifest.table_len,
+        ),
         None => Ok(Prefiltered::build(mat, &cfg)),
     }
 }
