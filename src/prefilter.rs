@@ -348,9 +348,9 @@ impl Prefiltered {
     }
 
     /// [`Self::from_table`] for material `index` of a library's `material/prefiltered.bsa`
-    /// (`f32`, tables of `len` entries one after the other), read in place: a solve reads a
-    /// thousand materials' tables, 153 KB each at the paper's settings, and copying them cost
-    /// more than evaluating them.
+    /// (`f32`, tables of `len` entries one after the other), read in place rather than copied
+    /// out of the map: a solve reads up to a thousand materials' tables, 153 KB each at the
+    /// paper's settings. A material past the last is an error naming the file.
     pub fn from_array(
         mat: &Material,
         cfg: &PrefilterConfig,
