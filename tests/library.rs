@@ -706,7 +706,6 @@ fn half_precision_light_lobes_match_the_f32_records_in_half_the_bytes() {
 #[test]
 fn byte_binned_columns_are_within_a_32nd_of_half_precision_and_the_solvers_read_them() {
     use biscale::library::profile::GammaPrecision;
-    use biscale::solve::{Final, Look, SolveOptions};
     let (byte, base, dh, db) = tiny_two_ways(["lib-gamma-half", "lib-gamma-byte"], |p| {
         assert_eq!(p.geometry.gamma_precision, GammaPrecision::Half);
         p.geometry.gamma_precision = GammaPrecision::Byte;
@@ -740,15 +739,7 @@ fn byte_binned_columns_are_within_a_32nd_of_half_precision_and_the_solvers_read_
     }
     // The geometry solver reads the byte columns for its second ranking and finds the same
     // best geometry.
-    let look = Look::from_spec("ward:ax=0.3,ay=0.08", Default::default(), None).unwrap();
-    let mat = biscale::material::parse_material("ggx:alpha=0.1,f0=0.9").unwrap();
-    let opt = SolveOptions {
-        k: 3,
-        pool: 6,
-        psi: 2,
-        final_eval: Final::Fast,
-        ..Default::default()
-    };
+    let (look, mat, opt) = common::aniso_ward_geometry_case();
     let a = biscale::solve::geometry::solve(&lh, &look, &mat, "ggx", None, &opt).unwrap();
     let b = biscale::solve::geometry::solve(&lb, &look, &mat, "ggx", None, &opt).unwrap();
     assert!(lb.reads().join(" ").contains("geometry/gamma.bsa"));

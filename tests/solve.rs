@@ -50,15 +50,7 @@ fn combo(lib: &Library, g: usize, m: usize) -> Look {
 #[test]
 fn geometry_solver_is_deterministic_sorted_and_reads_no_material_arrays() {
     let lib = Library::open(&tiny_library()).unwrap();
-    let look = Look::from_spec("ward:ax=0.3,ay=0.08", Default::default(), None).unwrap();
-    let mat = parse_material("ggx:alpha=0.1,f0=0.9").unwrap();
-    let opt = SolveOptions {
-        k: 3,
-        pool: 6,
-        psi: 2,
-        final_eval: Final::Fast,
-        ..Default::default()
-    };
+    let (look, mat, opt) = common::aniso_ward_geometry_case();
     let a = biscale::solve::geometry::solve(&lib, &look, &mat, "ggx", None, &opt).unwrap();
     let b = biscale::solve::geometry::solve(&lib, &look, &mat, "ggx", None, &opt).unwrap();
     assert_eq!(a.candidates.len(), 3);

@@ -37,3 +37,23 @@ pub fn shared_dir(name: &str) -> PathBuf {
     let _ = std::fs::remove_dir_all(&d);
     d
 }
+
+/// The geometry solver's standard test case: the anisotropic Ward look of the paper's Fig. 7
+/// with a glossy GGX fixed, K = 3 from a pool of 6 at two rotations, the fast final evaluator.
+pub fn aniso_ward_geometry_case() -> (
+    biscale::solve::Look,
+    biscale::material::Material,
+    biscale::solve::SolveOptions,
+) {
+    let look =
+        biscale::solve::Look::from_spec("ward:ax=0.3,ay=0.08", Default::default(), None).unwrap();
+    let mat = biscale::material::parse_material("ggx:alpha=0.1,f0=0.9").unwrap();
+    let opt = biscale::solve::SolveOptions {
+        k: 3,
+        pool: 6,
+        psi: 2,
+        final_eval: biscale::solve::Final::Fast,
+        ..Default::default()
+    };
+    (look, mat, opt)
+}
