@@ -39,6 +39,7 @@ pub mod gamma;
 pub mod jointvis;
 pub mod lightlobes;
 pub mod lobecodec;
+pub mod lobepack;
 pub mod prefilter;
 pub mod seen;
 pub mod sublobes;

@@ -32,6 +32,7 @@ use crate::frame::Vec3;
 use crate::gamma::GammaLayout;
 use crate::heightfield::Heightfield;
 use crate::lobecodec::{Frame, Local};
+use crate::lobepack;
 use crate::prefilter::Prefiltered;
 use crate::vmf::Vmf;
 use half::f16;
@@ -65,6 +66,8 @@ enum Moments<'a> {
     Half {
         body: Cow<'a, [f16]>,
         frames: Vec<Frame>,
+        /// For a packed record ([`crate::lobepack`]), where its rows lie in `body`.
+        packed: Option<Cow<'a, lobepack::Index>>,
     },
 }
 
@@ -128,14 +131,77 @@ impl<'a> LightLobes<'a> {
                 ),
             ));
         }
+        Self::half_moments(layout, clusters, head, body, None, what)
+    }
+
+    /// The lobes of a half-precision or packed record whose lengths were checked: its header
+    /// is checked, and each cluster's frame made.
+    fn half_moments(
+        layout: &'a GammaLayout,
+        clusters: usize,
+        head: &[f32],
+        body: Cow<'a, [f16]>,
+        packed: Option<Cow<'a, lobepack::Index>>,
+        what: &str,
+    ) -> Result<Self> {
         check_head(head, what)?;
         let frames = head.chunks(HEAD).map(Frame::of_head).collect();
         Ok(Self::parse_head(
             layout,
             clusters,
             head,
-            Moments::Half { body, frames },
+            Moments::Half {
+                body,
+                frames,
+                packed,
+            },
         ))
+    }
+
+    /// A stored record in the packed form ([`crate::lobepack`]): its header `head` (`f32`,
+    /// `clusters × 5`) and its packed words. `what` names it in errors.
+    pub fn from_packed(
+        layout: &'a GammaLayout,
+        clusters: usize,
+        head: &[f32],
+        words: Cow<'a, [f16]>,
+        what: &str,
+    ) -> Result<Self> {
+        Self::from_packed_indexed(layout, clusters, head, words, None, what)
+    }
+
+    /// [`Self::from_packed`] with the record's index made before (by
+    /// [`lobepack::Index::new`] on the same words), for a record read many times.
+    pub fn from_packed_indexed(
+        layout: &'a GammaLayout,
+        clusters: usize,
+        head: &[f32],
+        words: Cow<'a, [f16]>,
+        index: Option<&'a lobepack::Index>,
+        what: &str,
+    ) -> Result<Self> {
+        let shape = pack_shape(layout, clusters);
+        let index = (clusters > 0 && head.len() == clusters * HEAD)
+            .then(|| match index {
+                Some(ix) => {
+                    (*ix.shape() == shape && ix.words() == words.len()).then_some(Cow::Borrowed(ix))
+                }
+                None => lobepack::Index::new(&words, &shape).map(Cow::Owned),
+            })
+            .flatten()
+            .ok_or_else(|| {
+                Error::new(
+                    what,
+                    format!(
+                        "a packed light-lobe record of {} + {} numbers does not match {} \
+                         clusters and its masks (the file is corrupted or of another profile)",
+                        head.len(),
+                        words.len(),
+                        clusters
+                    ),
+                )
+            })?;
+        Self::half_moments(layout, clusters, head, words, Some(index), what)
     }
 
     fn parse(layout: &'a GammaLayout, clusters: usize, record: Cow<'a, [f32]>) -> Self {
@@ -180,6 +246,16 @@ impl<'a> LightLobes<'a> {
         }
     }
 
+    /// The half-precision body (`None` for an `f32` or a packed record).
+    pub fn half_body(&self) -> Option<&[f16]> {
+        match &self.moments {
+            Moments::Half {
+                body, packed: None, ..
+            } => Some(body),
+            _ => None,
+        }
+    }
+
     /// Bytes of the stored form.
     pub fn bytes(&self) -> usize {
         match &self.moments {
@@ -204,6 +280,16 @@ impl<'a> LightLobes<'a> {
     fn lit_at(&self, l: usize, b: usize) -> usize {
         let nv = self.layout.views.len();
         self.seen_at(nv) + (l * nv + b) * self.clusters * STRIDE
+    }
+}
+
+/// The shape of `layout`'s records of `clusters` clusters, for [`crate::lobepack`].
+pub fn pack_shape(layout: &GammaLayout, clusters: usize) -> lobepack::Shape {
+    lobepack::Shape {
+        clusters,
+        lights: layout.lights.len(),
+        views: layout.views.len(),
+        n_phi: layout.views.n_phi,
     }
 }
 
@@ -329,9 +415,20 @@ impl LightLobes<'_> {
                         crate::prefetch::read(&r[s..s + k * 3]);
                         crate::prefetch::read(&r[l..l + k * STRIDE]);
                     }
-                    Moments::Half { body, .. } => {
+                    Moments::Half {
+                        body, packed: None, ..
+                    } => {
                         crate::prefetch::read(&body[s..s + k * 3]);
                         crate::prefetch::read(&body[l..l + k * STRIDE]);
+                    }
+                    Moments::Half {
+                        body,
+                        packed: Some(ix),
+                        ..
+                    } => {
+                        let sh = ix.shape();
+                        crate::prefetch::read(&body[ix.span(sh.seen_row(b))]);
+                        crate::prefetch::read(&body[ix.span(sh.lit_row(n.light, b))]);
                     }
                 }
             }
@@ -350,7 +447,11 @@ impl LightLobes<'_> {
     fn lobes_at(&self, n: &Node, wi: Vec3, wo: Vec3, out: &mut Vec<(f64, Vmf)>) {
         match &self.moments {
             Moments::Single(r) => self.lobes_single(r, n, wi, wo, out),
-            Moments::Half { body, frames } => self.lobes_half(body, frames, n, wi, wo, out),
+            Moments::Half {
+                body,
+                frames,
+                packed,
+            } => self.lobes_half(body, frames, packed.as_deref(), n, wi, wo, out),
         }
     }
 
@@ -449,10 +550,12 @@ impl LightLobes<'_> {
     /// `f32` in one pass (8 numbers per instruction with F16C), the moments are interpolated in
     /// each cluster's frame (the decoding is linear once multiplied by the area) and turned to
     /// the macro frame once per cluster.
+    #[allow(clippy::too_many_arguments)]
     fn lobes_half(
         &self,
         body: &[f16],
         frames: &[Frame],
+        packed: Option<&lobepack::Index>,
         n: &Node,
         wi: Vec3,
         wo: Vec3,
@@ -486,8 +589,13 @@ impl LightLobes<'_> {
             if vb == 0.0 && !planar {
                 continue;
             }
-            let o = self.lit_at(l, b);
-            body[o..o + nl].convert_to_f32_slice(conv);
+            match packed {
+                None => {
+                    let o = self.lit_at(l, b);
+                    body[o..o + nl].convert_to_f32_slice(conv);
+                }
+                Some(ix) => ix.fill(body, ix.shape().lit_row(l, b), conv),
+            }
             if planar {
                 for c in (0..k).filter(|&c| self.planar[c]) {
                     let g = frames[c].planar_global(conv[c * STRIDE] as f64);
@@ -510,8 +618,13 @@ impl LightLobes<'_> {
             for (a, &e) in acc.iter_mut().zip(conv.iter()) {
                 *a += vb * e as f64;
             }
-            let s = self.seen_at(b);
-            body[s..s + ns].convert_to_f32_slice(&mut conv[..ns]);
+            match packed {
+                None => {
+                    let s = self.seen_at(b);
+                    body[s..s + ns].convert_to_f32_slice(&mut conv[..ns]);
+                }
+                Some(ix) => ix.fill(body, ix.shape().seen_row(b), &mut conv[..ns]),
+            }
             for (x, &y) in seen.iter_mut().zip(conv[..ns].iter()) {
                 *x += vb * y as f64;
             }

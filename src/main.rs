@@ -450,6 +450,12 @@ enum LibraryCmd {
         /// such a build. Sets that key of the library's profile.
         #[arg(long)]
         half_lobes: bool,
+        /// Store the half-precision light-lobe records packed: the same numbers without the
+        /// blocks that are zero and the zenith's repeated view nodes (52 % of the bytes on
+        /// `paper`), for libraries whose records do not fit in memory. Lossless: every record
+        /// is checked to unpack to itself.
+        #[arg(long)]
+        pack_lobes: bool,
         #[arg(long, short = 'q')]
         quiet: bool,
     },
@@ -818,9 +824,16 @@ fn main() -> ExitCode {
                 dir,
                 material_search_energy,
                 half_lobes,
+                pack_lobes,
                 quiet,
-            } => biscale::library::commands::refit(&dir, material_search_energy, half_lobes, quiet)
-                .and_then(|t| emit(&t)),
+            } => biscale::library::commands::refit(
+                &dir,
+                material_search_energy,
+                half_lobes,
+                pack_lobes,
+                quiet,
+            )
+            .and_then(|t| emit(&t)),
             LibraryCmd::Info { dir } => {
                 biscale::library::commands::info(&dir).and_then(|t| emit(&t))
             }

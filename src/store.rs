@@ -36,6 +36,7 @@ pub enum Dtype {
     F32,
     F64,
     U32,
+    U64,
 }
 
 impl Dtype {
@@ -44,7 +45,7 @@ impl Dtype {
             Dtype::UF8 => 1,
             Dtype::F16 => 2,
             Dtype::F32 | Dtype::U32 => 4,
-            Dtype::F64 => 8,
+            Dtype::F64 | Dtype::U64 => 8,
         }
     }
 }
@@ -721,6 +722,9 @@ impl ArrayFile {
     }
     pub fn u32s(&self) -> Result<&[u32]> {
         self.typed(Dtype::U32)
+    }
+    pub fn u64s(&self) -> Result<&[u64]> {
+        self.typed(Dtype::U64)
     }
     pub fn f16s(&self) -> Result<&[half::f16]> {
         self.typed(Dtype::F16)

@@ -83,7 +83,10 @@ pub fn library_look(lib: &Library, g: usize, m: usize) -> Result<Look> {
     let gi = lib.geometry_items()?;
     let mi = lib.material_items()?;
     let lobes = lib.geometry_lobes()?;
-    lobes.get(g)?; // a bad record fails here, not inside the look
+    // A bad record fails here, not inside the look; a packed record is indexed once, not at
+    // every direction the look is read at.
+    lobes.get(g)?;
+    let index = lobes.index(g)?;
     let mat = parse_material(&mi[m].spec)?;
     let pf = material_prefiltered(lib, &mat, Some(m))?;
     let colour = crate::library::items::average_colour(&mat);
@@ -91,7 +94,7 @@ pub fn library_look(lib: &Library, g: usize, m: usize) -> Result<Look> {
         &format!("{} with {} (library data)", gi[g].spec, mi[m].spec),
         move |wi: Vec3, wo: Vec3| {
             let mut scratch = Vec::new();
-            lobes.get(g).map_or(0.0, |l| {
+            lobes.get_indexed(g, index.as_ref()).map_or(0.0, |l| {
                 fbar_one(&l, &pf, &crate::frame::DirPair { wi, wo }, &mut scratch)
             })
         },

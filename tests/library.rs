@@ -533,7 +533,7 @@ fn light_lobe_weights_fit_the_probes_at_least_as_well_as_the_binned_fit_and_refi
     );
     // Refitting the finished library gives the same bytes.
     let before = std::fs::read(d.join("geometry/x-lobes.bsa")).unwrap();
-    biscale::library::commands::refit(&d, None, false, true).unwrap();
+    biscale::library::commands::refit(&d, None, false, false, true).unwrap();
     assert_eq!(
         std::fs::read(d.join("geometry/x-lobes.bsa")).unwrap(),
         before
@@ -583,7 +583,7 @@ fn the_material_search_selection_is_built_or_refitted_to_the_same_files() {
             "{f}"
         );
     }
-    let bad = refit(&without, Some(0.5), false, true)
+    let bad = refit(&without, Some(0.5), false, false, true)
         .unwrap_err()
         .to_string();
     assert!(bad.contains("compression.material_search_energy"), "{bad}");
@@ -592,7 +592,7 @@ fn the_material_search_selection_is_built_or_refitted_to_the_same_files() {
         .manifest
         .material_search
         .is_none());
-    refit(&without, e, false, true).unwrap();
+    refit(&without, e, false, false, true).unwrap();
     assert_eq!(data_files(&without), data_files(&with));
     assert_eq!(
         manifest_without_build(&without),
@@ -648,10 +648,38 @@ fn a_geometry_pilot_keeps_the_energy_in_one_pass_and_shards_still_equal_one_proc
 /// The light lobes in half precision (the default, `geometry.lobe_precision = "half"`) and in
 /// `f32` (`"single"`, and libraries built before the option) give the same `fbar` to well
 /// under the 1 % of an exact recovery, in about half the bytes; both forms open.
+/// 210 pairs at the library's lights (30 views each, to 87°), where records are compared.
+fn probe_pairs(lib: &Library) -> biscale::lightlobes::LightPairs {
+    let layout = lib.gamma_layout();
+    let pairs = (0..7)
+        .flat_map(|l| {
+            let wi = layout.lights[l];
+            (0..30).map(move |k| biscale::frame::DirPair {
+                wi,
+                wo: biscale::frame::dir_from_deg(3.0 * k as f64, 37.0 * k as f64),
+            })
+        })
+        .collect();
+    biscale::lightlobes::LightPairs::new(&layout, pairs)
+}
+
+/// A sharp and a broad material's prefiltered tables, to compare records with.
+fn probe_tables() -> Vec<(&'static str, biscale::prefilter::Prefiltered)> {
+    ["ggx:alpha=0.02,f0=0.9", "blinn:n=60+lambert:albedo=0.2"]
+        .into_iter()
+        .map(|m| {
+            let mat = biscale::material::parse_material(m).unwrap();
+            (
+                m,
+                biscale::prefilter::Prefiltered::build(&mat, &Default::default()),
+            )
+        })
+        .collect()
+}
+
 #[test]
 fn half_precision_light_lobes_match_the_f32_records_in_half_the_bytes() {
     use biscale::library::profile::LobePrecision;
-    use biscale::lightlobes::LightPairs;
     let (_, _, dh, ds) = tiny_two_ways(["lib-half", "lib-single"], |p| {
         assert_eq!(p.geometry.lobe_precision, LobePrecision::Half);
         p.geometry.lobe_precision = LobePrecision::Single;
@@ -666,22 +694,8 @@ fn half_precision_light_lobes_match_the_f32_records_in_half_the_bytes() {
     );
     let (lh, ls) = (Library::open(&dh).unwrap(), Library::open(&ds).unwrap());
     let (gh, gs) = (lh.geometry_lobes().unwrap(), ls.geometry_lobes().unwrap());
-    let layout = lh.gamma_layout();
-    let pairs = (0..7)
-        .flat_map(|l| {
-            let wi = layout.lights[l];
-            (0..30).map(move |k| biscale::frame::DirPair {
-                wi,
-                wo: biscale::frame::dir_from_deg(3.0 * k as f64, 37.0 * k as f64),
-            })
-        })
-        .collect();
-    let at = LightPairs::new(&layout, pairs);
-    for m in ["ggx:alpha=0.02,f0=0.9", "blinn:n=60+lambert:albedo=0.2"] {
-        let pf = biscale::prefilter::Prefiltered::build(
-            &biscale::material::parse_material(m).unwrap(),
-            &Default::default(),
-        );
+    let at = probe_pairs(&lh);
+    for (m, pf) in probe_tables() {
         for j in 0..lh.manifest.geometries {
             let (a, b) = (
                 gs.get(j).unwrap().fbar(&pf, &at),
@@ -695,12 +709,83 @@ fn half_precision_light_lobes_match_the_f32_records_in_half_the_bytes() {
     }
     // `library refit --half-lobes` turns the f32 library into the half-precision build.
     drop((gs, ls));
-    biscale::library::commands::refit(&ds, None, true, true).unwrap();
+    biscale::library::commands::refit(&ds, None, true, false, true).unwrap();
     assert_eq!(data_files(&ds), data_files(&dh));
     assert_eq!(manifest_without_build(&ds), manifest_without_build(&dh));
     // Again: nothing left to convert, the same files.
-    biscale::library::commands::refit(&ds, None, true, true).unwrap();
+    biscale::library::commands::refit(&ds, None, true, false, true).unwrap();
     assert_eq!(data_files(&ds), data_files(&dh));
+}
+
+#[test]
+fn packed_light_lobes_are_the_half_records_numbers_in_fewer_bytes() {
+    let (p, base) = tiny();
+    let (dh, dp) = (
+        TestDir::new("lib-pack-half"),
+        TestDir::new("lib-pack-packed"),
+    );
+    build_all(&p, &base, &dh, &QUIET, false, false).unwrap();
+    build_all(&p, &base, &dp, &QUIET, false, false).unwrap();
+    biscale::library::commands::refit(&dp, None, false, true, true).unwrap();
+    let size = |d: &Path, rel: &str| std::fs::metadata(d.join(rel)).map_or(0, |m| m.len());
+    let (half, packed) = (
+        size(&dh, "geometry/lobes.bsa"),
+        size(&dp, "geometry/lobes.bsa") + size(&dp, "geometry/lobe-offsets.bsa"),
+    );
+    assert!(packed < half * 9 / 10, "{packed} against {half} bytes");
+    let (lh, lp) = (Library::open(&dh).unwrap(), Library::open(&dp).unwrap());
+    let (gh, gp) = (lh.geometry_lobes().unwrap(), lp.geometry_lobes().unwrap());
+    assert!(gp.is_packed() && !gh.is_packed());
+    assert_eq!(gp.len(), lh.manifest.geometries);
+    let at = probe_pairs(&lh);
+    // The same numbers, bit for bit, mapped or read.
+    for (m, pf) in probe_tables() {
+        for j in 0..lh.manifest.geometries {
+            let a = gh.get(j).unwrap().fbar(&pf, &at);
+            assert_eq!(a, gp.get(j).unwrap().fbar(&pf, &at), "geometry {j}, {m}");
+            assert_eq!(a, gp.read(j).unwrap().fbar(&pf, &at), "geometry {j}, {m}");
+        }
+    }
+    assert!(gp.get(lh.manifest.geometries).is_err());
+    // The weights refitted to them are the same bytes, and so is a solve's answer.
+    let same =
+        |rel: &str| std::fs::read(dh.join(rel)).unwrap() == std::fs::read(dp.join(rel)).unwrap();
+    assert!(same("geometry/x-lobes.bsa") && same("geometry/lobe-heads.bsa"));
+    let (look, mat, opt) = common::aniso_ward_geometry_case();
+    let a = biscale::solve::geometry::solve(&lh, &look, &mat, "ggx", None, &opt).unwrap();
+    let b = biscale::solve::geometry::solve(&lp, &look, &mat, "ggx", None, &opt).unwrap();
+    let key = |r: &biscale::solve::SolveResult| -> Vec<(Option<usize>, f64, f64)> {
+        r.candidates
+            .iter()
+            .map(|c| (c.geometry, c.rerank_error, c.error))
+            .collect()
+    };
+    assert_eq!(key(&a), key(&b));
+    drop((gp, lp));
+    // Again: nothing left to pack, the same files; and every file matches the manifest.
+    let files = data_files(&dp);
+    biscale::library::commands::refit(&dp, None, false, true, true).unwrap();
+    assert_eq!(files, data_files(&dp));
+    biscale::library::commands::verify(&dp).unwrap();
+    // Offsets that do not end at the records' length: an error naming the offsets.
+    let off = dp.join("geometry/lobe-offsets.bsa");
+    let o = biscale::store::ArrayFile::open(&off, &Default::default()).unwrap();
+    let mut v = o.u64s().unwrap().to_vec();
+    drop(o);
+    *v.last_mut().unwrap() += 1;
+    biscale::store::write_array(
+        &off,
+        "light-lobe-offsets",
+        biscale::store::Dtype::U64,
+        &[v.len()],
+        bytemuck::cast_slice(&v),
+    )
+    .unwrap();
+    let e = Library::open(&dp)
+        .and_then(|l| l.geometry_lobes().map(|_| ()))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("lobe-offsets.bsa"), "{e}");
 }
 
 #[test]

@@ -1483,6 +1483,116 @@ pub fn convert_lobes_to_half(
     Ok(true)
 }
 
+/// The light-lobe records of `geometries` geometries of the library in `dir` (its manifest
+/// need not exist yet).
+fn open_lobes(
+    dir: &Path,
+    prof: &LibraryProfile,
+    geometries: usize,
+) -> Result<super::GeometryLobes> {
+    super::GeometryLobes::open(
+        |rel| ArrayFile::open(&dir.join(rel), &Expect::default()).map(std::sync::Arc::new),
+        gamma_layout(prof),
+        prof.geometry.lobe_clusters,
+        geometries,
+    )
+}
+
+/// Store a finished library's half-precision light lobes packed ([`crate::lobepack`]): a new
+/// `geometry/lobes.bsa` (one run of words) and [`super::LOBE_OFFSETS`], each written to a
+/// temporary file and renamed into place (the offsets first: a conversion stopped between
+/// the two renames leaves the old records, which are one row per geometry and ignore them),
+/// and listed in `files`. Every packed record is unpacked and compared with the record it
+/// came from before it is written. Returns whether anything was converted (`false` where the
+/// records are packed already).
+pub fn convert_lobes_to_packed(
+    dir: &Path,
+    prof: &LibraryProfile,
+    geometries: usize,
+    progress: &Progress,
+    files: &mut Vec<ArrayEntry>,
+) -> Result<bool> {
+    // Opened from the files (a conversion to half precision just before may have replaced
+    // the records the library mapped).
+    let old = open_lobes(dir, prof, geometries)?;
+    if old.is_packed() {
+        return Ok(false);
+    }
+    if !old.is_half() {
+        return Err(Error::new(
+            old.path().display().to_string(),
+            "the records are f32: store them in half precision first (refit --half-lobes)",
+        ));
+    }
+    let shape = crate::lightlobes::pack_shape(&old.layout, prof.geometry.lobe_clusters);
+    let n = old.len();
+    // Geometry `j`'s record packed, checked to unpack to itself.
+    let packed = |j: usize| -> Result<Vec<half::f16>> {
+        let what = || format!("{} row {j}", old.path().display());
+        let lobes = old.read(j)?;
+        let body = lobes
+            .half_body()
+            .ok_or_else(|| Error::new(what(), "not a half-precision record"))?;
+        crate::lobepack::pack(body, &shape)
+            .filter(|p| {
+                crate::lobepack::unpack(p, &shape)
+                    .is_some_and(|u| u.iter().zip(body).all(|(a, b)| a.to_bits() == b.to_bits()))
+            })
+            .ok_or_else(|| {
+                Error::new(
+                    what(),
+                    "the record does not pack to itself (its zenith view nodes differ); keep \
+                     the records unpacked",
+                )
+            })
+    };
+    // Two passes over the records: the header states the length, so the packed lengths
+    // first, then the words.
+    let blocks = |label: &str, each: &mut dyn FnMut(Vec<Vec<half::f16>>) -> Result<()>| {
+        let bar = progress.bar(n as u64, label);
+        for start in (0..n).step_by(256) {
+            let block: Vec<Vec<half::f16>> = (start..(start + 256).min(n))
+                .into_par_iter()
+                .map(packed)
+                .collect::<Result<_>>()?;
+            let len = block.len() as u64;
+            each(block)?;
+            bar.inc(len);
+        }
+        bar.finish();
+        Ok::<(), Error>(())
+    };
+    let mut offsets = vec![0u64];
+    blocks("refit: packing the light lobes (sizes)", &mut |b| {
+        for p in b {
+            let last = offsets.last().copied().unwrap_or(0);
+            offsets.push(last + p.len() as u64);
+        }
+        Ok(())
+    })?;
+    let words = offsets.last().copied().unwrap_or(0) as usize;
+    // The offsets first: beside the old records (one row per geometry) they are not read.
+    let orel = super::LOBE_OFFSETS;
+    write_array(
+        &dir.join(orel),
+        "light-lobe-offsets",
+        Dtype::U64,
+        &[n + 1],
+        bytemuck::cast_slice(&offsets),
+    )?;
+    let rel = "geometry/lobes.bsa";
+    let mut w = ArrayWriter::create(&dir.join(rel), "light-lobes-packed", Dtype::F16, &[words])?;
+    blocks("refit: packing the light lobes (words)", &mut |b| {
+        b.iter().try_for_each(|p| w.write(bytemuck::cast_slice(p)))
+    })?;
+    let sum = w.finish()?;
+    let osum = crate::store::checksum(bytemuck::cast_slice(&offsets));
+    files.retain(|f| f.path != rel && f.path != orel);
+    files.push(entry(dir, rel, sum));
+    files.push(entry(dir, orel, osum));
+    Ok(true)
+}
+
 /// Fit the geometry CX weights to the light lobes ([`super::lobefit`]), probed with the
 /// material representatives' tables, and write `geometry/x-lobes.bsa` (listed in `files`; an
 /// earlier entry of it is replaced). Needs the geometry and material arrays of the merge
@@ -1496,22 +1606,11 @@ pub fn fit_lobe_weights(
 ) -> Result<f64> {
     let t = Instant::now();
     let open = |rel: &str| ArrayFile::open(&dir.join(rel), &Expect::default());
-    let file = open("geometry/lobes.bsa")?;
-    let heads = match file.header.dtype {
-        Dtype::F16 => Some(std::sync::Arc::new(open("geometry/lobe-heads.bsa")?)),
-        _ => None,
-    };
-    let n = file.header.shape.first().copied().unwrap_or(0);
-    let lobes = super::GeometryLobes::new(
-        std::sync::Arc::new(file),
-        heads,
-        gamma_layout(prof),
-        prof.geometry.lobe_clusters,
-        n,
-    )?;
+    let x0 = open("geometry/x.bsa")?;
+    let n = x0.header.shape.first().copied().unwrap_or(0);
+    let lobes = open_lobes(dir, prof, n)?;
     let reps = open("geometry/representatives.bsa")?;
     let reps: Vec<usize> = reps.u32s()?.iter().map(|&k| k as usize).collect();
-    let x0 = open("geometry/x.bsa")?;
     let tables_file = open("material/prefiltered.bsa")?;
     let mreps = open("material/representatives.bsa")?;
     let pcfg = prefilter_config(prof);

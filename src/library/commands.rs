@@ -102,11 +102,15 @@ pub fn merge(dir: &Path, quiet: bool, keep_chunks: bool) -> Result<String> {
 /// library's profile first (its `profile.toml` and the manifest's profile hash are rewritten:
 /// the library is then what the changed profile builds). `half_lobes` first stores `f32`
 /// light-lobe records in half precision ([`super::build::convert_lobes_to_half`]) and sets the
-/// profile's `geometry.lobe_precision = "half"` the same way. Rewrites the manifest.
+/// profile's `geometry.lobe_precision = "half"` the same way. `pack_lobes` then stores the
+/// half-precision records packed ([`super::build::convert_lobes_to_packed`]: the same numbers
+/// without their zero blocks and repeated zenith nodes; the profile is unchanged, the form
+/// is the files'). Rewrites the manifest.
 pub fn refit(
     dir: &Path,
     material_search_energy: Option<f64>,
     half_lobes: bool,
+    pack_lobes: bool,
     quiet: bool,
 ) -> Result<String> {
     let mut lib = Library::open(dir)?;
@@ -119,6 +123,9 @@ pub fn refit(
     if half_lobes && super::build::convert_lobes_to_half(dir, &lib, &prof, &progress, &mut m.files)?
     {
         prof.geometry.lobe_precision = super::profile::LobePrecision::Half;
+    }
+    if pack_lobes {
+        super::build::convert_lobes_to_packed(dir, &prof, m.geometries, &progress, &mut m.files)?;
     }
     let changed = prof != lib.profile;
     if changed {

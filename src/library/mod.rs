@@ -218,26 +218,37 @@ pub fn ensure(profile: &str, cache: Option<&Path>, progress: &Progress) -> Resul
 /// The light lobes of every library geometry ([`crate::lightlobes`]), read from the mapped
 /// arrays: `geometry/lobes.bsa` holds the `f32` records, or (`geometry.lobe_precision = "half"`,
 /// [`crate::lobecodec`]) their moments in `f16` beside their headers in
-/// `geometry/lobe-heads.bsa`.
+/// `geometry/lobe-heads.bsa`, or (packed by `library refit --pack-lobes`, [`crate::lobepack`])
+/// the packed records one after the other, where `geometry/lobe-offsets.bsa` says.
 pub struct GeometryLobes {
     file: Arc<ArrayFile>,
     heads: Option<Arc<ArrayFile>>,
+    /// For packed records: where each geometry's starts in `file`, one more at the end.
+    offsets: Option<Arc<ArrayFile>>,
     pub layout: GammaLayout,
     clusters: usize,
-    /// Elements per row of `file`.
+    /// Elements per row of `file` (not packed).
     len: usize,
 }
 
+/// The packed records' offsets, relative to a library's directory.
+pub const LOBE_OFFSETS: &str = "geometry/lobe-offsets.bsa";
+
 impl GeometryLobes {
     /// The records of `geometries` geometries in `file` (and `heads`, for the half-precision
-    /// form), their types and shapes checked against `layout` and `clusters`.
+    /// form; and `offsets`, for the packed form), their types and shapes checked against
+    /// `layout` and `clusters`.
     pub fn new(
         file: Arc<ArrayFile>,
         heads: Option<Arc<ArrayFile>>,
+        offsets: Option<Arc<ArrayFile>>,
         layout: GammaLayout,
         clusters: usize,
         geometries: usize,
     ) -> Result<Self> {
+        if let (Some(o), Some(h)) = (&offsets, &heads) {
+            return Self::packed(file, h.clone(), o.clone(), layout, clusters, geometries);
+        }
         let record = crate::lightlobes::record_len(&layout, clusters);
         let shape = |f: &ArrayFile, want: [usize; 2], what: &str| {
             if f.header.shape == want {
@@ -290,10 +301,121 @@ impl GeometryLobes {
         Ok(GeometryLobes {
             file,
             heads,
+            offsets: None,
             layout,
             clusters,
             len,
         })
+    }
+
+    /// The records of `geometries` geometries, their arrays opened by `open` (a path relative
+    /// to the library's directory): `geometry/lobes.bsa`, and `geometry/lobe-heads.bsa` beside
+    /// half-precision or packed records, and [`LOBE_OFFSETS`] beside packed ones (whose
+    /// `lobes.bsa` is one run of words).
+    pub fn open(
+        open: impl Fn(&str) -> Result<Arc<ArrayFile>>,
+        layout: GammaLayout,
+        clusters: usize,
+        geometries: usize,
+    ) -> Result<Self> {
+        let file = open("geometry/lobes.bsa")?;
+        let heads = (file.header.dtype == Dtype::F16)
+            .then(|| open("geometry/lobe-heads.bsa"))
+            .transpose()?;
+        let offsets = (file.header.shape.len() == 1)
+            .then(|| open(LOBE_OFFSETS))
+            .transpose()?;
+        Self::new(file, heads, offsets, layout, clusters, geometries)
+    }
+
+    /// [`Self::new`] for packed records: `file` one run of `f16` words, `offsets` `u64`
+    /// (`geometries + 1`, from 0 to the run's length, never decreasing).
+    fn packed(
+        file: Arc<ArrayFile>,
+        heads: Arc<ArrayFile>,
+        offsets: Arc<ArrayFile>,
+        layout: GammaLayout,
+        clusters: usize,
+        geometries: usize,
+    ) -> Result<Self> {
+        let bad = |f: &ArrayFile, m: String| Err(Error::new(f.path.display().to_string(), m));
+        if file.header.dtype != Dtype::F16 || file.header.shape.len() != 1 {
+            return bad(
+                &file,
+                format!(
+                    "element type {:?} and shape {:?}: packed light-lobe records are one run of \
+                     F16 words",
+                    file.header.dtype, file.header.shape
+                ),
+            );
+        }
+        if offsets.header.shape != [geometries + 1] || offsets.header.dtype != Dtype::U64 {
+            return bad(
+                &offsets,
+                format!(
+                    "element type {:?} and shape {:?}: expected U64 [{}] (geometries + 1)",
+                    offsets.header.dtype,
+                    offsets.header.shape,
+                    geometries + 1
+                ),
+            );
+        }
+        let o = offsets.u64s()?;
+        if o.first() != Some(&0)
+            || o.last() != Some(&(file.header.shape[0] as u64))
+            || o.windows(2).any(|w| w[0] > w[1])
+        {
+            return bad(
+                &offsets,
+                format!(
+                    "the offsets must run from 0 to {} (the words of {}) without decreasing",
+                    file.header.shape[0],
+                    file.path.display()
+                ),
+            );
+        }
+        if heads.header.shape != [geometries, clusters * crate::lightlobes::HEAD]
+            || heads.header.dtype != Dtype::F32
+        {
+            return bad(
+                &heads,
+                format!(
+                    "element type {:?} and shape {:?}: expected F32 [{geometries}, {}] (geometries \
+                     × cluster headers)",
+                    heads.header.dtype,
+                    heads.header.shape,
+                    clusters * crate::lightlobes::HEAD
+                ),
+            );
+        }
+        Ok(GeometryLobes {
+            file,
+            heads: Some(heads),
+            offsets: Some(offsets),
+            layout,
+            clusters,
+            len: 0,
+        })
+    }
+
+    /// Whether the records are the packed form.
+    pub fn is_packed(&self) -> bool {
+        self.offsets.is_some()
+    }
+
+    /// Geometry `j`'s elements in `file`.
+    fn span(&self, j: usize) -> Result<std::ops::Range<usize>> {
+        let missing = || Error::new(self.what(j), "no such geometry");
+        match &self.offsets {
+            None => Ok(j * self.len..(j + 1) * self.len),
+            Some(o) => {
+                let o = o.u64s()?;
+                match (o.get(j), o.get(j + 1)) {
+                    (Some(&a), Some(&b)) => Ok(a as usize..b as usize),
+                    _ => Err(missing()),
+                }
+            }
+        }
     }
 
     /// Whether the records are the half-precision form.
@@ -303,7 +425,10 @@ impl GeometryLobes {
 
     /// How many geometries.
     pub fn len(&self) -> usize {
-        self.file.header.shape.first().copied().unwrap_or(0)
+        match &self.offsets {
+            Some(o) => o.header.shape.first().map_or(0, |n| n.saturating_sub(1)),
+            None => self.file.header.shape.first().copied().unwrap_or(0),
+        }
     }
 
     pub fn is_empty(&self) -> bool {
@@ -324,14 +449,59 @@ impl GeometryLobes {
         LightLobes::from_record(&self.layout, self.clusters, rec, &self.what(j))
     }
 
-    /// Geometry `j`'s lobes from its half-precision header and moments.
-    fn half<'a>(&'a self, j: usize, head: &[f32], body: Cow<'a, [f16]>) -> Result<LightLobes<'a>> {
-        LightLobes::from_half(&self.layout, self.clusters, head, body, &self.what(j))
+    /// Geometry `j`'s lobes from its half-precision (or packed) header and moments.
+    fn half<'a>(
+        &'a self,
+        j: usize,
+        head: &[f32],
+        body: Cow<'a, [f16]>,
+        index: Option<&'a crate::lobepack::Index>,
+    ) -> Result<LightLobes<'a>> {
+        if self.is_packed() {
+            LightLobes::from_packed_indexed(
+                &self.layout,
+                self.clusters,
+                head,
+                body,
+                index,
+                &self.what(j),
+            )
+        } else {
+            LightLobes::from_half(&self.layout, self.clusters, head, body, &self.what(j))
+        }
     }
 
     /// Geometry `j`'s lobes (borrowed from the mapping; nothing is copied).
     pub fn get(&self, j: usize) -> Result<LightLobes<'_>> {
-        let rows = j * self.len..(j + 1) * self.len;
+        self.get_indexed(j, None)
+    }
+
+    /// Where geometry `j`'s packed record's rows lie (`None` for records that are not packed):
+    /// for [`Self::get_indexed`], when one record is read many times (a target look).
+    pub fn index(&self, j: usize) -> Result<Option<crate::lobepack::Index>> {
+        if !self.is_packed() {
+            return Ok(None);
+        }
+        let words = self
+            .file
+            .f16s()?
+            .get(self.span(j)?)
+            .ok_or_else(|| Error::new(self.what(j), "no such geometry"))?;
+        crate::lobepack::Index::new(
+            words,
+            &crate::lightlobes::pack_shape(&self.layout, self.clusters),
+        )
+        .map(Some)
+        .ok_or_else(|| Error::new(self.what(j), "the packed record does not match its masks"))
+    }
+
+    /// [`Self::get`] with the packed record's index made before ([`Self::index`]).
+    pub fn get_indexed<'a>(
+        &'a self,
+        j: usize,
+        index: Option<&'a crate::lobepack::Index>,
+    ) -> Result<LightLobes<'a>> {
+        let rows = self.span(j)?;
         let missing = || Error::new(self.what(j), "no such geometry");
         match &self.heads {
             None => {
@@ -342,7 +512,7 @@ impl GeometryLobes {
                 let k = self.clusters * crate::lightlobes::HEAD;
                 let head = h.f32s()?.get(j * k..(j + 1) * k).ok_or_else(missing)?;
                 let body = self.file.f16s()?.get(rows).ok_or_else(missing)?;
-                self.half(j, head, Cow::Borrowed(body))
+                self.half(j, head, Cow::Borrowed(body), index)
             }
         }
     }
@@ -350,7 +520,8 @@ impl GeometryLobes {
     /// Geometry `j`'s lobes copied out with positioned reads (a pass over every geometry
     /// through the map would keep the whole file resident).
     pub fn read(&self, j: usize) -> Result<LightLobes<'_>> {
-        let at = j * self.len * self.file.header.dtype.size();
+        let rows = self.span(j)?;
+        let at = rows.start * self.file.header.dtype.size();
         match &self.heads {
             None => {
                 let mut rec = vec![0f32; self.len];
@@ -362,10 +533,10 @@ impl GeometryLobes {
                 let k = self.clusters * crate::lightlobes::HEAD;
                 let mut head = vec![0f32; k];
                 h.read_data(j * k * 4, bytemuck::cast_slice_mut(&mut head))?;
-                let mut body = vec![f16::ZERO; self.len];
+                let mut body = vec![f16::ZERO; rows.len()];
                 self.file
                     .read_data(at, bytemuck::cast_slice_mut(&mut body))?;
-                self.half(j, &head, Cow::Owned(body))
+                self.half(j, &head, Cow::Owned(body), None)
             }
         }
     }
@@ -375,12 +546,13 @@ impl GeometryLobes {
     /// workers splitting `js` in halves reach the records (from the start and from the middle,
     /// alternately). (The headers, 20 bytes per cluster, are left to the reads themselves.)
     pub fn will_need(&self, js: &[usize]) {
-        let bytes = self.len * self.file.header.dtype.size();
+        let size = self.file.header.dtype.size();
         let half = js.len().div_ceil(2);
         let ranges = (0..half)
             .flat_map(|i| [js.get(i), js.get(half + i)])
             .flatten()
-            .map(|&j| (j * bytes, bytes))
+            .filter_map(|&j| self.span(j).ok())
+            .map(|r| (r.start * size, r.len() * size))
             .collect();
         self.file.will_need(ranges);
     }
@@ -570,15 +742,8 @@ impl Library {
     /// Every geometry's light lobes (`geometry/lobes.bsa`, and `geometry/lobe-heads.bsa` beside
     /// half-precision ones, mapped on first use).
     pub fn geometry_lobes(&self) -> Result<GeometryLobes> {
-        let file = self.array("geometry/lobes.bsa")?;
-        let heads = if file.header.dtype == Dtype::F16 {
-            Some(self.array("geometry/lobe-heads.bsa")?)
-        } else {
-            None
-        };
-        GeometryLobes::new(
-            file,
-            heads,
+        GeometryLobes::open(
+            |rel| self.array(rel),
             self.gamma_layout(),
             self.profile.geometry.lobe_clusters,
             self.manifest.geometries,
