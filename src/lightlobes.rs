@@ -24,6 +24,11 @@
 //! | lit | `L × V × K × 9` | `G1`, `G2` (xx, yy, zz, xy, xz, yz) of the area seen from `w_b` and lit from `w_l` |
 //!
 //! Clusters beyond the geometry's distinct normals have zero area and zero moments.
+//!
+//! Libraries store the record in half precision ([`crate::lobecodec`]: the header apart, the
+//! moments in `f16` about each cluster's centre), and those whose records do not fit in memory
+//! may store that form packed ([`crate::lobepack`]: without its zero blocks and the zenith's
+//! repeated nodes). All three forms give the same lobes as the numbers they hold.
 
 use crate::bvndf::{assemble_lobes, Clusters, LobeSource, STRIDE};
 use crate::error::{Error, Result};
