@@ -744,9 +744,20 @@ fn packed_light_lobes_are_the_half_records_numbers_in_fewer_bytes() {
             let a = gh.get(j).unwrap().fbar(&pf, &at);
             assert_eq!(a, gp.get(j).unwrap().fbar(&pf, &at), "geometry {j}, {m}");
             assert_eq!(a, gp.read(j).unwrap().fbar(&pf, &at), "geometry {j}, {m}");
+            // With its index made once (a target look reads one record many times).
+            let ix = gp.index(j).unwrap();
+            assert!(ix.is_some() && gh.index(j).unwrap().is_none());
+            let b = gp.get_indexed(j, ix.as_ref()).unwrap().fbar(&pf, &at);
+            assert_eq!(a, b, "geometry {j}, {m}");
         }
     }
     assert!(gp.get(lh.manifest.geometries).is_err());
+    // An index that does not fit the record is an error, not a misread.
+    let other = (0..lh.manifest.geometries)
+        .map(|j| gp.index(j).unwrap().unwrap())
+        .find(|ix| ix.words() != gp.index(0).unwrap().unwrap().words())
+        .expect("records of different lengths");
+    assert!(gp.get_indexed(0, Some(&other)).is_err());
     // The weights refitted to them are the same bytes, and so is a solve's answer.
     let same =
         |rel: &str| std::fs::read(dh.join(rel)).unwrap() == std::fs::read(dp.join(rel)).unwrap();

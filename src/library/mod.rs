@@ -231,6 +231,22 @@ pub struct GeometryLobes {
     len: usize,
 }
 
+/// The cluster headers beside half-precision or packed records must be `f32` [geometries,
+/// clusters × 5].
+fn check_heads(h: &ArrayFile, geometries: usize, clusters: usize) -> Result<()> {
+    let want = [geometries, clusters * crate::lightlobes::HEAD];
+    if h.header.shape == want && h.header.dtype == Dtype::F32 {
+        return Ok(());
+    }
+    Err(Error::new(
+        h.path.display().to_string(),
+        format!(
+            "element type {:?} and shape {:?}: expected F32 {want:?} (geometries × cluster headers)",
+            h.header.dtype, h.header.shape
+        ),
+    ))
+}
+
 /// The packed records' offsets, relative to a library's directory.
 pub const LOBE_OFFSETS: &str = "geometry/lobe-offsets.bsa";
 
@@ -275,17 +291,7 @@ impl GeometryLobes {
                     [geometries, len],
                     "half-precision light-lobe moments",
                 )?;
-                shape(
-                    h,
-                    [geometries, clusters * crate::lightlobes::HEAD],
-                    "cluster headers",
-                )?;
-                if h.header.dtype != Dtype::F32 {
-                    return Err(Error::new(
-                        h.path.display().to_string(),
-                        format!("element type {:?}, expected F32", h.header.dtype),
-                    ));
-                }
+                check_heads(h, geometries, clusters)?;
                 len
             }
             (d, _) => {
@@ -374,20 +380,7 @@ impl GeometryLobes {
                 ),
             );
         }
-        if heads.header.shape != [geometries, clusters * crate::lightlobes::HEAD]
-            || heads.header.dtype != Dtype::F32
-        {
-            return bad(
-                &heads,
-                format!(
-                    "element type {:?} and shape {:?}: expected F32 [{geometries}, {}] (geometries \
-                     × cluster headers)",
-                    heads.header.dtype,
-                    heads.header.shape,
-                    clusters * crate::lightlobes::HEAD
-                ),
-            );
-        }
+        check_heads(&heads, geometries, clusters)?;
         Ok(GeometryLobes {
             file,
             heads: Some(heads),
