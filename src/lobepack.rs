@@ -213,10 +213,22 @@ impl Index {
     /// stored), converted to `f32`.
     #[inline]
     pub fn fill(&self, words: &[f16], r: usize, out: &mut [f32]) {
+        match self.shape.width(r) {
+            SEEN => self.fill_w::<SEEN>(words, r, out),
+            _ => self.fill_w::<LIT>(words, r, out),
+        }
+    }
+
+    /// [`Self::fill`] for rows of width `W`: with the width a constant, each block's move and
+    /// each gap's zeros are a few register moves rather than calls to `memmove` and `memset`
+    /// (a row has up to 16 blocks, and the solvers' re-rank fills eight rows per sample).
+    #[inline]
+    fn fill_w<const W: usize>(&self, words: &[f16], r: usize, out: &mut [f32]) {
         use half::slice::HalfFloatSliceExt;
-        let (mw, w) = (self.shape.mask_words(), self.shape.width(r));
+        let mw = self.shape.mask_words();
         let data = &words[self.span(r)];
-        let all = self.shape.clusters * w;
+        let k = self.shape.clusters;
+        let all = k * W;
         if data.len() == all {
             // Every block stored: the row is the dense numbers.
             data.convert_to_f32_slice(&mut out[..all]);
@@ -225,22 +237,20 @@ impl Index {
         // The row's blocks converted at once (8 numbers per instruction with F16C) into the end
         // of `out`, then each moved down to its cluster's place, in cluster order, and the gaps
         // zeroed. A block's place is never above where it was converted to (at most as many
-        // clusters follow it as blocks do), so no move overwrites a block not yet moved.
+        // clusters follow it as blocks do), and a gap never reaches a block not yet moved.
         let tail = all - data.len();
         data.convert_to_f32_slice(&mut out[tail..all]);
-        let (mut from, mut to) = (tail, 0);
-        for (i, m) in words[r * mw..(r + 1) * mw].iter().enumerate() {
-            let mut m = m.to_bits();
-            while m != 0 {
-                let c = i * 16 + m.trailing_zeros() as usize;
-                out[to..c * w].fill(0.0);
-                out.copy_within(from..from + w, c * w);
-                from += w;
-                to = (c + 1) * w;
-                m &= m - 1;
+        let masks = &words[r * mw..(r + 1) * mw];
+        let mut from = tail;
+        for c in 0..k {
+            let to = c * W;
+            if masks[c / 16].to_bits() >> (c % 16) & 1 != 0 {
+                out.copy_within(from..from + W, to);
+                from += W;
+            } else {
+                out[to..to + W].fill(0.0);
             }
         }
-        out[to..all].fill(0.0);
     }
 
     /// The packed words of row `r` (its blocks), for prefetching.
