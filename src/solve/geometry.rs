@@ -125,7 +125,10 @@ pub fn coarse_step(n: usize, floor: usize, samples: usize) -> usize {
 
 /// Narrow `pool` to at most `floor` entries by coarse passes over `samples` samples:
 /// `errors(pool, step)` gives each entry's error (in `pool`'s order) at every `step`-th
-/// sample, and each pass keeps the best quarter (at least `floor`).
+/// sample, and each pass keeps the best quarter (at least `floor`). A pass whose samples are
+/// the pass before's (both held at [`COARSE_MIN_SAMPLES`]) is not evaluated again: its errors
+/// are the kept entries' own from before, and it keeps their best quarter, the same entries in
+/// the same order.
 pub fn narrow<T: Copy>(
     mut pool: Vec<T>,
     floor: usize,
@@ -133,11 +136,18 @@ pub fn narrow<T: Copy>(
     errors: impl Fn(&[T], usize) -> Result<Vec<f64>>,
 ) -> Result<Vec<T>> {
     let floor = floor.max(1);
+    // The last pass's step and its kept entries' errors, in `pool`'s order.
+    let mut last: Option<(usize, Vec<f64>)> = None;
     while pool.len() > floor {
         let step = coarse_step(pool.len(), floor, samples);
-        let errs = errors(&pool, step)?;
+        let errs = match last.take() {
+            Some((s, errs)) if s == step => errs,
+            _ => errors(&pool, step)?,
+        };
         let keep = (pool.len() / COARSE_STEP).max(floor);
-        pool = smallest(&errs, keep).into_iter().map(|i| pool[i]).collect();
+        let best = smallest(&errs, keep);
+        pool = best.iter().map(|&i| pool[i]).collect();
+        last = Some((step, best.iter().map(|&i| errs[i]).collect()));
     }
     Ok(pool)
 }

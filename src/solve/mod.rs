@@ -728,6 +728,31 @@ mod tests {
     }
 
     #[test]
+    fn narrowing_evaluates_passes_at_the_same_samples_once() {
+        use geometry::{coarse_step, narrow, COARSE_KEEP, COARSE_STEP};
+        // Errors with many ties, different at every step.
+        let err = |i: usize, step: usize| ((i * 7919 + step * 31) % 1000) as f64;
+        let calls = std::cell::RefCell::new(Vec::new());
+        let got = narrow((0..4096).collect(), COARSE_KEEP, 490, |p: &[usize], step| {
+            calls.borrow_mut().push((p.len(), step));
+            Ok(p.iter().map(|&i| err(i, step)).collect())
+        })
+        .unwrap();
+        // 4096 → 1024 → 256 → 64 → 32: the first two passes both at every 30th sample (held
+        // at COARSE_MIN_SAMPLES), evaluated once.
+        assert_eq!(*calls.borrow(), vec![(4096, 30), (256, 16), (64, 4)]);
+        // The same entries in the same order as evaluating every pass.
+        let mut naive: Vec<usize> = (0..4096).collect();
+        while naive.len() > COARSE_KEEP {
+            let step = coarse_step(naive.len(), COARSE_KEEP, 490);
+            let e: Vec<f64> = naive.iter().map(|&i| err(i, step)).collect();
+            let keep = (naive.len() / COARSE_STEP).max(COARSE_KEEP);
+            naive = smallest(&e, keep).into_iter().map(|i| naive[i]).collect();
+        }
+        assert_eq!(got, naive);
+    }
+
+    #[test]
     fn smallest_keeps_the_n_best_in_order_with_ties_by_index() {
         let e = [0.5, f64::NAN, 0.1, 0.3, 0.1, f64::INFINITY, 0.2, 0.3];
         assert_eq!(smallest(&e, 3), vec![2, 4, 6]);
