@@ -407,7 +407,7 @@ pub fn solve_with(
         rots.first().map_or(0, |r| r.samples.pairs.len()),
     );
     let mut out: Vec<Candidate> = reranked
-        .iter()
+        .par_iter()
         .map(
             |&Reranked {
                  rank: re,
