@@ -733,10 +733,15 @@ mod tests {
         // Errors with many ties, different at every step.
         let err = |i: usize, step: usize| ((i * 7919 + step * 31) % 1000) as f64;
         let calls = std::cell::RefCell::new(Vec::new());
-        let got = narrow((0..4096).collect(), COARSE_KEEP, 490, |p: &[usize], step| {
-            calls.borrow_mut().push((p.len(), step));
-            Ok(p.iter().map(|&i| err(i, step)).collect())
-        })
+        let got = narrow(
+            (0..4096).collect(),
+            COARSE_KEEP,
+            490,
+            |p: &[usize], step| {
+                calls.borrow_mut().push((p.len(), step));
+                Ok(p.iter().map(|&i| err(i, step)).collect())
+            },
+        )
         .unwrap();
         // 4096 → 1024 → 256 → 64 → 32: the first two passes both at every 30th sample (held
         // at COARSE_MIN_SAMPLES), evaluated once.
@@ -909,7 +914,10 @@ mod tests {
                 .sum();
             let got = crate::fastmath::dot(y.col_as_slice(j), y.col_as_slice(j));
             // f32 products over 70 terms: relative rounding about 1e-6.
-            assert!((got - want).abs() < 1e-5 * want, "item {j}: {got} vs {want}");
+            assert!(
+                (got - want).abs() < 1e-5 * want,
+                "item {j}: {got} vs {want}"
+            );
         }
         // A zero or non-finite Gram matrix has no factor: the scan then uses it as it is.
         assert!(gram_factor(faer::Mat::<f64>::zeros(4, 4).as_ref()).is_none());
