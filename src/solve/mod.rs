@@ -522,7 +522,8 @@ pub fn search_errors_multi(
     // The Gram product runs in f32, the weights' own precision (twice the f64 rate); its
     // rounding only decides which items are rescored, in f64, below. Through the Gram
     // matrix's Cholesky factor when it has one ([`gram_factor`]): `xᵀ Q x = |R x|²`, and `R`
-    // is triangular, so the product needs about two thirds of the operations.
+    // is triangular, so the product needs a little over half the operations
+    // ([`triangular_times`]).
     let q = aw.transpose() * &aw;
     let factor = gram_factor(q.as_ref());
     let q = Mat::<f32>::from_fn(c, c, |i, j| q[(i, j)] as f32);
