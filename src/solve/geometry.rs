@@ -264,37 +264,55 @@ pub fn solve_with(
         },
         Ok,
     )?;
-    // `[(error, item, rotation)]`, rotation-major.
-    let scored: Vec<(f64, usize, usize)> =
-        search_errors_multi(shared, &targets, &a, xs, items.len(), rescore, anyb)
-            .into_iter()
-            .enumerate()
-            .flat_map(|(ri, e)| e.into_iter().enumerate().map(move |(j, e)| (e, j, ri)))
-            .collect();
-    let errs: Vec<f64> = scored.iter().map(|s| s.0).collect();
     // The rankings reach as deep as the widened pools may go; the first `pool_size` of their
     // interleaving are the pool either way (each ranking is a prefix of a deeper one).
     let depth = pool_size.saturating_mul(1 + opt.widen);
-    let mut rankings = vec![smallest(&errs, depth)];
-    // The second ranking: the representatives' binned columns with the material's response,
-    // the linear model the CX weights were fitted to (same (rotation, item) layout).
-    if let (ItemData::Lobes { pf, .. }, true) = (&data, opt.binned_search) {
-        let gamma = lib.binned_columns()?;
-        let resp = Response::with_table(&layout, material, pf, &shared.pairs);
-        let b: Vec<Vec<f64>> = reps
-            .par_iter()
-            .map(|&k| Ok(resp.apply(&gamma.column(k as usize)?)))
-            .collect::<Result<_>>()?;
-        let binned =
-            search_errors_multi(shared, &targets, &b, xs, items.len(), rescore, anyb).concat();
-        rankings.push(smallest(&binned, depth));
-    }
-    // The third: the representatives' light-lobe values with the weights refitted to them.
-    if let (ItemData::Lobes { .. }, Some(xl)) = (&data, xl) {
-        let refit =
-            search_errors_multi(shared, &targets, &a, xl, items.len(), rescore, anyb).concat();
-        rankings.push(smallest(&refit, depth));
-    }
+    let n = items.len();
+    // The three rankings run side by side: each scan's serial parts (the selections, the
+    // material's response) overlap the others' products.
+    let (first, (binned, refit)) = rayon::join(
+        || search_errors_multi(shared, &targets, &a, xs, n, rescore, anyb),
+        || {
+            rayon::join(
+                // The second ranking: the representatives' binned columns with the material's
+                // response, the linear model the CX weights were fitted to (same (rotation,
+                // item) layout).
+                || -> Result<Option<Vec<usize>>> {
+                    let (ItemData::Lobes { pf, .. }, true) = (&data, opt.binned_search) else {
+                        return Ok(None);
+                    };
+                    let gamma = lib.binned_columns()?;
+                    let resp = Response::with_table(&layout, material, pf, &shared.pairs);
+                    let b: Vec<Vec<f64>> = reps
+                        .par_iter()
+                        .map(|&k| Ok(resp.apply(&gamma.column(k as usize)?)))
+                        .collect::<Result<_>>()?;
+                    let e = search_errors_multi(shared, &targets, &b, xs, n, rescore, anyb);
+                    Ok(Some(smallest(&e.concat(), depth)))
+                },
+                // The third: the representatives' light-lobe values with the weights refitted
+                // to them.
+                || match (&data, xl) {
+                    (ItemData::Lobes { .. }, Some(xl)) => Some(smallest(
+                        &search_errors_multi(shared, &targets, &a, xl, n, rescore, anyb).concat(),
+                        depth,
+                    )),
+                    _ => None,
+                },
+            )
+        },
+    );
+    // `[(error, item, rotation)]`, rotation-major.
+    let scored: Vec<(f64, usize, usize)> = first
+        .into_iter()
+        .enumerate()
+        .flat_map(|(ri, e)| e.into_iter().enumerate().map(move |(j, e)| (e, j, ri)))
+        .collect();
+    let errs: Vec<f64> = scored.iter().map(|s| s.0).collect();
+    let rankings: Vec<Vec<usize>> = std::iter::once(smallest(&errs, depth))
+        .chain(binned?)
+        .chain(refit)
+        .collect();
     let refs: Vec<&[usize]> = rankings.iter().map(|r| r.as_slice()).collect();
     let order = interleave(&refs, depth);
     stats.items_searched = items.len() * rots.len();
