@@ -1,6 +1,6 @@
 //! The processor features this build was compiled for, checked at start-up: on x86-64,
-//! `.cargo/config.toml` enables AVX2 and F16C (half-precision conversions, which every AVX2
-//! processor has), and a processor without it would otherwise stop at the
+//! `.cargo/config.toml` enables AVX2, F16C (half-precision conversions) and POPCNT (bit
+//! counts), which every AVX2 processor has, and a processor without it would otherwise stop at the
 //! first such instruction with an illegal-instruction signal instead of a message.
 
 /// `Err` saying what to do when the processor lacks an instruction set this build uses.
@@ -8,7 +8,7 @@ pub fn check() -> Result<(), String> {
     #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
     if !has_avx2() {
         return Err(
-            "this build of biscale uses AVX2 and F16C instructions (enabled in \
+            "this build of biscale uses AVX2, F16C and POPCNT instructions (enabled in \
                     .cargo/config.toml) and this processor does not have them; rebuild for \
                     any x86-64 processor with RUSTFLAGS=\"-C target-cpu=x86-64\" cargo build \
                     --release"
@@ -18,7 +18,7 @@ pub fn check() -> Result<(), String> {
     Ok(())
 }
 
-/// Whether the processor has AVX2 and F16C and the operating system saves the 256-bit registers,
+/// Whether the processor has AVX2, F16C and POPCNT and the operating system saves the 256-bit registers,
 /// asked of the processor itself (`is_x86_feature_detected!` answers `true` without asking
 /// when the build enables the feature).
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
@@ -29,8 +29,8 @@ fn has_avx2() -> bool {
     let max = __cpuid(0).eax;
     let l1 = __cpuid(1);
     let (osxsave, avx) = (l1.ecx & (1 << 27) != 0, l1.ecx & (1 << 28) != 0);
-    let f16c = l1.ecx & (1 << 29) != 0;
-    if max < 7 || !osxsave || !avx || !f16c {
+    let (f16c, popcnt) = (l1.ecx & (1 << 29) != 0, l1.ecx & (1 << 23) != 0);
+    if max < 7 || !osxsave || !avx || !f16c || !popcnt {
         return false;
     }
     let xcr0: u32;

@@ -178,26 +178,38 @@ impl Index {
     pub fn new(words: &[f16], s: &Shape) -> Option<Self> {
         let (rows, mw) = (s.rows(), s.mask_words());
         let head = rows * mw;
-        if words.len() < head || s.clusters > mw * 16 {
+        // Every start fits in 32 bits when the record's length does.
+        if words.len() < head || s.clusters > mw * 16 || u32::try_from(words.len()).is_err() {
             return None;
         }
-        let mut starts = Vec::with_capacity(rows + 1);
-        let mut at = head;
-        for r in 0..rows {
-            starts.push(u32::try_from(at).ok()?);
-            let set: usize = words[r * mw..(r + 1) * mw]
-                .iter()
-                .map(|m| m.to_bits().count_ones() as usize)
-                .sum();
-            // A bit beyond the last cluster is not a record of this shape.
-            let spare = mw * 16 - s.clusters;
-            if spare > 0 && words[(r + 1) * mw - 1].to_bits() >> (16 - spare) != 0 {
+        let masks: &[u16] = bytemuck::cast_slice(&words[..head]);
+        // A bit beyond the last cluster is not a record of this shape (one OR over every row's
+        // last word, not a test per row).
+        let spare = mw * 16 - s.clusters;
+        if spare > 0 {
+            let last = masks[mw - 1..].iter().step_by(mw).fold(0, |a, &m| a | m);
+            if last >> (16 - spare) != 0 {
                 return None;
             }
-            at += set * s.width(r);
         }
-        starts.push(u32::try_from(at).ok()?);
-        (at == words.len()).then_some(Index { shape: *s, starts })
+        // The starts are running sums of each row's set bits times its width: the seen rows
+        // (3 numbers per block) first, then the lit rows (9). A search reads one record's
+        // index per pooled geometry, thousands per solve: the rows' lengths are found in one
+        // loop without tests (vectorised), then summed.
+        let mut starts = vec![0u32; rows + 1];
+        let seen = s.unique_views();
+        let len = |row: &[u16]| row.iter().map(|m| m.count_ones()).sum::<u32>();
+        for (r, row) in masks.chunks_exact(mw).enumerate() {
+            starts[r + 1] = len(row) * if r < seen { SEEN as u32 } else { LIT as u32 };
+        }
+        // (In 64 bits: a start past 32 bits, from a corrupted mask, makes the end differ from
+        // the record's length, and the index is refused.)
+        let mut at = head as u64;
+        for v in &mut starts {
+            at += u64::from(*v);
+            *v = at as u32;
+        }
+        (at == words.len() as u64).then_some(Index { shape: *s, starts })
     }
 
     pub fn shape(&self) -> &Shape {
@@ -370,8 +382,20 @@ mod tests {
         let mut longer = p.clone();
         longer.push(f16::ONE);
         assert!(Index::new(&longer, &s).is_none());
-        let mut stray = p;
+        let mut stray = p.clone();
         stray[0] = f16::from_bits(stray[0].to_bits() | 1 << 15);
         assert!(Index::new(&stray, &s).is_none());
+        // ... in any row: here the last lit row's mask.
+        let last = s.rows() * s.mask_words() - 1;
+        let mut stray = p;
+        stray[last] = f16::from_bits(stray[last].to_bits() | 1 << 15);
+        assert!(Index::new(&stray, &s).is_none());
+        // Two mask words per row (17 clusters): a bit past the last cluster in a later row.
+        let s17 = shape(17);
+        let mut p17 = pack(&body(&s17, 3), &s17).expect("packs");
+        assert!(Index::new(&p17, &s17).is_some());
+        let w = 5 * s17.mask_words() + 1;
+        p17[w] = f16::from_bits(p17[w].to_bits() | 1 << 1);
+        assert!(Index::new(&p17, &s17).is_none());
     }
 }
