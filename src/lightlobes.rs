@@ -354,6 +354,11 @@ impl LightPairs {
             .iter()
             .map(|p| Node::find(layout, p.wi, p.wo))
             .collect();
+        Self::placed(pairs, nodes)
+    }
+
+    /// `pairs` at their `nodes`, with the order they are visited in.
+    fn placed(pairs: Vec<DirPair>, nodes: Vec<Option<Node>>) -> Self {
         let mut order: Vec<usize> = (0..pairs.len()).collect();
         order.sort_by_key(|&i| match &nodes[i] {
             Some(n) => (
@@ -377,6 +382,37 @@ impl LightPairs {
             order,
             next,
         }
+    }
+
+    /// `pairs` with each view moved to the view node nearest it (largest cosine): a record is
+    /// then read at one node per pair instead of interpolated over up to four. Returns the
+    /// moved pairs' placement; its `pairs` are the moved pairs, at which a target must be
+    /// read again. Pairs whose light is not one of the layout's, or whose view is at or below
+    /// the horizon, are kept as they are (they have no lobes either way).
+    pub fn snapped(layout: &GammaLayout, pairs: Vec<DirPair>) -> Self {
+        let grid = &layout.views;
+        let (pairs, nodes): (Vec<DirPair>, Vec<Option<Node>>) = pairs
+            .into_iter()
+            .map(|p| match Node::find(layout, p.wi, p.wo) {
+                Some(n) => {
+                    let b = (0..grid.len())
+                        .max_by(|&a, &b| {
+                            p.wo.dot(grid.direction(a))
+                                .total_cmp(&p.wo.dot(grid.direction(b)))
+                                .then(b.cmp(&a))
+                        })
+                        .unwrap_or(0);
+                    let wo = grid.direction(b);
+                    let node = Node {
+                        light: n.light,
+                        views: [(b, 1.0), (b, 0.0), (b, 0.0), (b, 0.0)],
+                    };
+                    (DirPair { wi: p.wi, wo }, Some(node))
+                }
+                None => (p, None),
+            })
+            .unzip();
+        Self::placed(pairs, nodes)
     }
 }
 
@@ -588,10 +624,20 @@ impl LightLobes<'_> {
         };
         // A planar cluster is read node by node: its entries in the macro frame (from its lit
         // area alone: its normals are its centre's).
+        // Only the nodes of non-zero weight are read: `assemble_lobes` reads no other.
         let planar = self.planar.iter().any(|&p| p);
-        let mut ent = vec![0f32; if planar { wb.len() * nl } else { 0 }];
+        let (mut e0, mut e1);
+        let ent: &mut [f32] = if !planar {
+            &mut []
+        } else if k <= STACK {
+            e0 = [0f32; 4 * STACK * STRIDE];
+            &mut e0[..wb.len() * nl]
+        } else {
+            e1 = vec![0f32; wb.len() * nl];
+            &mut e1
+        };
         for (i, &(b, vb)) in wb.iter().enumerate() {
-            if vb == 0.0 && !planar {
+            if vb == 0.0 {
                 continue;
             }
             match packed {
@@ -608,9 +654,6 @@ impl LightLobes<'_> {
                         *x = y as f32;
                     }
                 }
-            }
-            if vb == 0.0 {
-                continue;
             }
             // Multiplied by their areas (exact enough in f32: 2⁻²⁴ against f16's 2⁻¹¹), the
             // entries add up as the f32 records' do, in one flat loop.
@@ -639,13 +682,13 @@ impl LightLobes<'_> {
             .zip(seen.chunks_exact(3))
             .map(|(f, g)| wo.dot(f.seen_global(&[g[0], g[1], g[2]])))
             .sum();
-        let (acc, ent) = (&*acc, &ent);
+        let (acc, ent) = (&*acc, &*ent);
         self.assemble(
             n,
             wi,
             wo,
             &|b, c| {
-                let i = wb.iter().position(|v| v.0 == b).unwrap_or(0);
+                let i = wb.iter().position(|v| v.0 == b && v.1 != 0.0).unwrap_or(0);
                 &ent[(i * k + c) * STRIDE..][..STRIDE]
             },
             |c| {
@@ -793,6 +836,61 @@ mod tests {
                 let rel = crate::bench::relative_rms(&b, &a);
                 assert!(rel < 5e-4, "{spec}, {m}: half against f32 {rel}");
                 assert!(b.iter().all(|x| x.is_finite()));
+            }
+        }
+    }
+
+    #[test]
+    fn snapped_pairs_are_read_at_their_nearest_view_node() {
+        // A planar-walled geometry and a curved one, in f32 and in half precision: a pair
+        // moved to its nearest node gives the value the record interpolates there.
+        let lay = GammaLayout::new(10, 16, 16);
+        let pairs: Vec<DirPair> = (0..7)
+            .flat_map(|l| {
+                let wi = lay.lights[l];
+                (0..20).map(move |k| DirPair {
+                    wi,
+                    wo: dir_from_deg(84.0 * ((k * 7) % 20) as f64 / 19.0, 17.0 * k as f64),
+                })
+            })
+            .collect();
+        let snapped = LightPairs::snapped(&lay, pairs.clone());
+        let grid = &lay.views;
+        for (p, q) in pairs.iter().zip(&snapped.pairs) {
+            assert_eq!(p.wi, q.wi);
+            let b = (0..grid.len())
+                .position(|b| grid.direction(b) == q.wo)
+                .expect("a node's direction");
+            for a in 0..grid.len() {
+                assert!(p.wo.dot(grid.direction(a)) <= p.wo.dot(grid.direction(b)));
+            }
+        }
+        // Below the horizon: kept, and no lobes.
+        let down = DirPair {
+            wi: lay.lights[0],
+            wo: Vec3::new(0.6, 0.0, -0.8),
+        };
+        let below = LightPairs::snapped(&lay, vec![down]);
+        assert_eq!(below.pairs[0].wo, down.wo);
+        let interpolated = LightPairs::new(&lay, snapped.pairs.clone());
+        let pf = Prefiltered::build(
+            &parse_material("ggx:alpha=0.1+lambert:albedo=0.1").unwrap(),
+            &PrefilterConfig::default(),
+        );
+        for spec in [
+            "vgroove:n=48,period=16,depth=4",
+            "bumps:n=48,count=6,radius=8,height=3,seed=2",
+        ] {
+            let hf = parse_generator(spec).unwrap().build().unwrap();
+            let ll = LightLobes::build(&lay, &hf, 1024, 16);
+            let (head, body) =
+                crate::lobecodec::encode(ll.record().unwrap(), 16, lay.views.len()).unwrap();
+            let half = LightLobes::from_half(&lay, 16, &head, Cow::Owned(body), "x").unwrap();
+            for r in [&ll, &half] {
+                let (a, b) = (r.fbar(&pf, &snapped), r.fbar(&pf, &interpolated));
+                let rel = crate::bench::relative_rms(&a, &b);
+                assert!(rel < 1e-9, "{spec}: snapped against interpolated {rel}");
+                assert_eq!(r.fbar(&pf, &below), vec![0.0]);
             }
         }
     }

@@ -338,7 +338,9 @@ pub fn solve_with(
                     |pool, step| {
                         let coarse: Vec<_> = rots
                             .iter()
-                            .map(|r| super::coarse_at(&layout, &r.samples, &r.target, step))
+                            .map(|r| {
+                                super::coarse_at(&layout, &r.samples, &r.target, look, r.psi, step)
+                            })
                             .collect();
                         pool.par_iter()
                             .map(|&i| {

@@ -388,7 +388,11 @@ pub fn search(
     };
     let at_every = |step: usize| -> Vec<(Samples, Vec<f64>, LightPairs)> {
         rots.iter()
-            .map(|(s, t)| super::coarse_at(&lobes.layout, s, t, step))
+            .enumerate()
+            .map(|(ri, (s, t))| {
+                let psi = super::psi_angle(ri, opt.psi);
+                super::coarse_at(&lobes.layout, s, t, look, psi, step)
+            })
             .collect()
     };
     let chosen =

@@ -655,16 +655,30 @@ pub fn psi_angle(i: usize, psi: usize) -> f64 {
     std::f64::consts::TAU * i as f64 / psi.max(1) as f64
 }
 
-/// Every `step`-th of the samples `s` with the target values `t` there, and their pairs placed
-/// in the light-lobe table of `layout` (a coarse pass's samples; `step` 1: all of them).
+/// A coarse pass's samples: every `step`-th of the samples `s` (`t`: the target values there),
+/// their pairs placed in the light-lobe table of `layout`, and the target's values at them.
+/// With `step` 1 these are `s` and `t`. Coarser, each sample's view is moved to the nearest
+/// view node of the table ([`crate::lightlobes::LightPairs::snapped`]), where a record is read
+/// at one node instead of interpolated over up to four, and `look` (rotated by `psi`) is read
+/// there: a coarse pass only ranks, and its samples need not be the solve's own.
 pub fn coarse_at(
     layout: &crate::gamma::GammaLayout,
     s: &Samples,
     t: &[f64],
+    look: &Look,
+    psi: f64,
     step: usize,
 ) -> (Samples, Vec<f64>, crate::lightlobes::LightPairs) {
-    let (s, t) = s.every(step, t);
-    let at = crate::lightlobes::LightPairs::new(layout, dir_pairs(&s));
+    let (mut s, t) = s.every(step, t);
+    if step <= 1 {
+        let at = crate::lightlobes::LightPairs::new(layout, dir_pairs(&s));
+        return (s, t, at);
+    }
+    let at = crate::lightlobes::LightPairs::snapped(layout, dir_pairs(&s));
+    for (p, q) in s.pairs.iter_mut().zip(&at.pairs) {
+        p.1 = q.wo;
+    }
+    let t = s.values(&look.as_fn(), psi);
     (s, t, at)
 }
 
