@@ -804,21 +804,29 @@ mod tests {
         }
     }
 
+    /// `n` views at each of the 7 lights, spread from the zenith to `top_deg` in a scrambled
+    /// order, `dphi_deg` apart in azimuth.
+    fn spread_pairs(lay: &GammaLayout, n: usize, top_deg: f64, dphi_deg: f64) -> Vec<DirPair> {
+        (0..7)
+            .flat_map(|l| {
+                let wi = lay.lights[l];
+                (0..n).map(move |k| DirPair {
+                    wi,
+                    wo: dir_from_deg(
+                        top_deg * ((k * 7) % n) as f64 / (n - 1) as f64,
+                        dphi_deg * k as f64,
+                    ),
+                })
+            })
+            .collect()
+    }
+
     #[test]
     fn the_half_precision_form_gives_the_records_fbar() {
         // Curved clusters (bumps, fBm) and planar ones (V-grooves), under a sharp and a
         // broad glossy material, at the 7 lights and views from the zenith to 85°.
         let lay = GammaLayout::new(10, 16, 16);
-        let pairs: Vec<DirPair> = (0..7)
-            .flat_map(|l| {
-                let wi = lay.lights[l];
-                (0..40).map(move |k| DirPair {
-                    wi,
-                    wo: dir_from_deg(85.0 * ((k * 7) % 40) as f64 / 39.0, 9.0 * k as f64),
-                })
-            })
-            .collect();
-        let at = LightPairs::new(&lay, pairs);
+        let at = LightPairs::new(&lay, spread_pairs(&lay, 40, 85.0, 9.0));
         for spec in [
             "bumps:n=48,count=6,radius=8,height=3,seed=2",
             "fbm:n=48,amplitude=0.5,seed=3",
@@ -845,15 +853,7 @@ mod tests {
         // A planar-walled geometry and a curved one, in f32 and in half precision: a pair
         // moved to its nearest node gives the value the record interpolates there.
         let lay = GammaLayout::new(10, 16, 16);
-        let pairs: Vec<DirPair> = (0..7)
-            .flat_map(|l| {
-                let wi = lay.lights[l];
-                (0..20).map(move |k| DirPair {
-                    wi,
-                    wo: dir_from_deg(84.0 * ((k * 7) % 20) as f64 / 19.0, 17.0 * k as f64),
-                })
-            })
-            .collect();
+        let pairs = spread_pairs(&lay, 20, 84.0, 17.0);
         let snapped = LightPairs::snapped(&lay, pairs.clone());
         let grid = &lay.views;
         for (p, q) in pairs.iter().zip(&snapped.pairs) {
