@@ -192,15 +192,13 @@ impl Index {
                 return None;
             }
         }
-        // The starts are running sums of each row's set bits times its width: the seen rows
-        // (3 numbers per block) first, then the lit rows (9). A search reads one record's
-        // index per pooled geometry, thousands per solve: the rows' lengths are found in one
-        // loop without tests (vectorised), then summed.
+        // The starts are running sums of each row's set bits times its width. A search reads
+        // one record's index per pooled geometry, thousands per solve: the rows' lengths are
+        // found in one loop, then summed in another.
         let mut starts = vec![0u32; rows + 1];
-        let seen = s.unique_views();
-        let len = |row: &[u16]| row.iter().map(|m| m.count_ones()).sum::<u32>();
         for (r, row) in masks.chunks_exact(mw).enumerate() {
-            starts[r + 1] = len(row) * if r < seen { SEEN as u32 } else { LIT as u32 };
+            let set: u32 = row.iter().map(|m| m.count_ones()).sum();
+            starts[r + 1] = set * s.width(r) as u32;
         }
         // (In 64 bits: a start past 32 bits, from a corrupted mask, makes the end differ from
         // the record's length, and the index is refused.)

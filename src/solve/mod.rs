@@ -699,6 +699,51 @@ mod tests {
     use crate::frame::Vec3;
 
     #[test]
+    fn coarse_passes_compare_at_view_nodes_and_the_last_at_the_solves_samples() {
+        let layout = crate::gamma::GammaLayout::new(10, 16, 16);
+        let look = Look::from_spec("ggx:alpha=0.2", look::Edits::default(), None).unwrap();
+        let pairs: Vec<(usize, Vec3)> = (0..40)
+            .map(|k| {
+                let (t, p) = ((5 + 2 * k) as f64, (37 * k) as f64);
+                (k % 7, crate::frame::dir_from_deg(t, p))
+            })
+            .collect();
+        let s = Samples {
+            weights: (0..40).map(|k| 1.0 + k as f64 / 40.0).collect(),
+            pairs,
+            lights: layout.lights.clone(),
+        };
+        let psi = 0.3;
+        let t = s.values(&look.as_fn(), psi);
+        // Every sample: the solve's own samples and values.
+        let (s1, t1, _) = coarse_at(&layout, &s, &t, &look, psi, 1);
+        assert_eq!(
+            (s1.pairs, s1.weights, t1),
+            (s.pairs.clone(), s.weights.clone(), t)
+        );
+        // Every 4th: the views at grid nodes, the weights kept, the look read there.
+        let (s4, t4, at) = coarse_at(&layout, &s, &s.values(&look.as_fn(), psi), &look, psi, 4);
+        assert_eq!(s4.pairs.len(), 10);
+        assert_eq!(
+            s4.weights,
+            s.weights.iter().step_by(4).copied().collect::<Vec<_>>()
+        );
+        for (k, &(l, wo)) in s4.pairs.iter().enumerate() {
+            assert_eq!(l, s.pairs[4 * k].0);
+            assert!((0..layout.views.len()).any(|b| layout.views.direction(b) == wo));
+            assert_eq!(at.pairs[k].wo, wo);
+        }
+        assert_eq!(t4, s4.values(&look.as_fn(), psi));
+        assert_ne!(
+            t4,
+            s.values(&look.as_fn(), psi)
+                .into_iter()
+                .step_by(4)
+                .collect::<Vec<_>>()
+        );
+    }
+
+    #[test]
     fn the_automatic_pool_grows_with_the_library_and_an_asked_pool_wins() {
         assert_eq!(auto_pool(29), 64);
         assert_eq!(auto_pool(192), 64);
