@@ -125,6 +125,9 @@ pub struct Visibility<'a> {
     bh: i64,
     /// Highest surface point of each block (its cells' corners), row-major.
     bmax: Vec<f64>,
+    /// Highest corner of each cell, row-major: a cell whose highest point cannot beat the
+    /// march's best slope is stepped over without its corners (most cells of a march).
+    cmax: Vec<f64>,
     /// The surface's steepest rise along each of the 8 azimuths `k · 45°` (from +x towards +y):
     /// the largest directional derivative of any facet ([`Visibility::slope_bound`]).
     slopes: [f64; 8],
@@ -221,6 +224,7 @@ impl<'a> Visibility<'a> {
             bw,
             bh,
             bmax,
+            cmax: cell_max,
             slopes,
             bshift: bsize.trailing_zeros(),
             bwmask: pow2_mask(bw),
@@ -375,8 +379,20 @@ impl<'a> Visibility<'a> {
                     }
                 }
             }
-            let c = self.corners(&walk);
             let s_exit = walk.s_exit();
+            // Every breakpoint of the cell is at least `s_in` away and at most its highest
+            // corner: none beats `best` when that corner does not at `s_in` (the same test as
+            // the blocks', per cell). Only the end test at the exit remains.
+            if walk.s_in > MIN_RUN
+                && self.cmax[(walk.iy * self.w + walk.ix) as usize] - pz <= best * walk.s_in
+            {
+                if s_exit > MIN_RUN && (headroom <= best * s_exit || s_exit > period) {
+                    return (best, false);
+                }
+                walk.step();
+                continue;
+            }
+            let c = self.corners(&walk);
             if let Some(sd) = walk.diagonal_crossing() {
                 if sd > MIN_RUN {
                     // Slopes are compared as rises (`rise > best s`), dividing only when a
@@ -1193,6 +1209,13 @@ struct CellWalk {
     /// Unwrapped lower-left corner of the current cell.
     cx: f64,
     cy: f64,
+    /// The same corner as integers (kept beside the floats: a block is found per cell, and
+    /// converting the floats each time costs more than the cell's own test).
+    ucx: i64,
+    ucy: i64,
+    /// The walk's cell steps along x and y (+1 or -1).
+    sx: i64,
+    sy: i64,
     /// Wrapped cell indices.
     ix: i64,
     iy: i64,
@@ -1220,6 +1243,10 @@ impl CellWalk {
             hmask: pow2_mask(h),
             cx: 0.0,
             cy: 0.0,
+            ucx: 0,
+            ucy: 0,
+            sx: if az.dx > 0.0 { 1 } else { -1 },
+            sy: if az.dy > 0.0 { 1 } else { -1 },
             ix: 0,
             iy: 0,
             tmax_x: 0.0,
@@ -1237,8 +1264,10 @@ impl CellWalk {
     fn enter(&mut self, probe: f64, s_in: f64) {
         self.cx = floor(self.px + probe * self.dx);
         self.cy = floor(self.py + probe * self.dy);
-        self.ix = wrap(self.cx as i64, self.w, self.wmask);
-        self.iy = wrap(self.cy as i64, self.h, self.hmask);
+        self.ucx = self.cx as i64;
+        self.ucy = self.cy as i64;
+        self.ix = wrap(self.ucx, self.w, self.wmask);
+        self.iy = wrap(self.ucy, self.h, self.hmask);
         let next = |c: f64, p: f64, d: f64, step: f64| {
             if d > 0.0 {
                 (c + 1.0 - p) * step
@@ -1301,9 +1330,10 @@ impl CellWalk {
     fn step(&mut self) {
         self.s_in = self.s_exit();
         if self.tmax_x < self.tmax_y {
-            let sx = if self.dx > 0.0 { 1 } else { -1 };
+            let sx = self.sx;
             self.tmax_x += self.step_x;
             self.cx += sx as f64;
+            self.ucx += sx;
             self.ix += sx;
             if self.ix == self.w {
                 self.ix = 0;
@@ -1311,9 +1341,10 @@ impl CellWalk {
                 self.ix = self.w - 1;
             }
         } else {
-            let sy = if self.dy > 0.0 { 1 } else { -1 };
+            let sy = self.sy;
             self.tmax_y += self.step_y;
             self.cy += sy as f64;
+            self.ucy += sy;
             self.iy += sy;
             if self.iy == self.h {
                 self.iy = 0;
@@ -1326,7 +1357,7 @@ impl CellWalk {
     /// Unwrapped block of side `2^shift` holding the current cell.
     #[inline]
     fn block(&self, shift: u32) -> (i64, i64) {
-        ((self.cx as i64) >> shift, (self.cy as i64) >> shift)
+        (self.ucx >> shift, self.ucy >> shift)
     }
 
     /// Distance at which the walk leaves block `(bx, by)` of side `bs` (multiplied by the
