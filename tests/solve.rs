@@ -637,6 +637,40 @@ fn general_solver_stops_when_a_combination_is_within_stop_below() {
     }
 }
 
+/// The stopping rule inside a start: without a joint search, the first iteration that finds a
+/// combination within `stop_below` ends the search, with fewer solves than running on.
+#[test]
+fn general_solver_stops_inside_a_start() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let look = combo(&lib, 10, 2);
+    let (opt, g) = small_general(3, 16, 1, 3);
+    let run = |stop_below: f64| {
+        let g = biscale::solve::general::GeneralOptions {
+            stop_below,
+            joint_pool: 0,
+            max_iterations: 4,
+            ..g.clone()
+        };
+        biscale::solve::general::explore(&lib, &look, &opt, &g).unwrap()
+    };
+    let (all, full) = run(0.0);
+    // A bound that every visited combination meets: the first iteration meets it (no joint
+    // search runs before it).
+    let first = all
+        .iter()
+        .map(|c| c.error)
+        .fold(f64::INFINITY, f64::max)
+        .min(1.0);
+    let (early, st) = run(first);
+    assert!(
+        st.notes.iter().any(|n| n.contains("stopped in start 0")),
+        "{:?}",
+        st.notes
+    );
+    assert!(early.iter().any(|c| c.error <= first));
+    assert!(st.items_searched < full.items_searched, "{:?}", st.notes);
+}
+
 /// Visually equivalent details: every kept combination is within the bound, no two are the
 /// same pair, and the first pass keeps only combinations that differ in both parts.
 #[test]

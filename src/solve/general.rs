@@ -255,6 +255,7 @@ pub fn explore(
         }
         let mut m = start_mats[s];
         let mut last: Option<(usize, i64, usize)> = None;
+        let mut ended = false;
         for _ in 0..g.max_iterations.max(1) {
             if let Entry::Vacant(slot) = geometry_solves.entry(m) {
                 let gr = geometry_solve(
@@ -301,8 +302,21 @@ pub fn explore(
                 stats.notes.push(format!("start {s}: converged"));
                 break;
             }
+            // The stopping rule holds within a start too: an iteration that found a
+            // combination within the bound ends the search.
+            if done(&seen) {
+                stats.notes.push(format!(
+                    "stopped in start {s}: a combination is within {:.1} % (--stop-below)",
+                    100.0 * g.stop_below
+                ));
+                ended = true;
+                break;
+            }
             last = Some(key);
             m = best_m.material.unwrap_or(m);
+        }
+        if ended {
+            break;
         }
         s += 1;
     }
