@@ -244,56 +244,58 @@ pub fn search(
             .collect();
         // One block of geometries: every material's error for each, the best kept.
         let scan_geometries = |gs: std::ops::Range<usize>| -> Vec<Pair> {
-            // P for the block's geometries at once, one column per geometry (so that each
-            // geometry's values are contiguous): rtᵀ · Xᵀ, (ks·d) × geometries.
-            let xt = Mat::from_fn(kr, gs.len(), |r, i| gx[(gs.start + i) * kr + r]);
-            let mut p = Mat::<f32>::zeros(ks * d, gs.len());
+            // P for the block's geometries at once, one row per geometry: Xᵀ · rt,
+            // geometries × (ks·d), so that entry (a, k) of every geometry's P is one contiguous
+            // column and the terms below run down the block's geometries in vector registers.
+            let n = gs.len();
+            let x = Mat::from_fn(n, kr, |i, r| gx[(gs.start + i) * kr + r]);
+            let mut p = Mat::<f32>::zeros(n, ks * d);
             faer::linalg::matmul::matmul(
                 p.as_mut(),
                 faer::Accum::Replace,
-                rt.as_ref().transpose(),
-                xt.as_ref(),
+                x.as_ref(),
+                rt.as_ref(),
                 1.0,
                 faer::Par::Seq,
             );
-            // Each geometry's quadratic form in the materials' coordinates, as columns:
-            // [Q_ac (a <= c)] once, [-2 b_a] per rotation; then every material's error
-            // at once, Eᵀ = Uq Vqᵀ + Ul Vlᵀ + |t|², one contiguous column per geometry.
-            let pgs: Vec<Vec<&[f32]>> = (0..gs.len())
-                .map(|i| p.col_as_slice(i).chunks_exact(d).collect())
-                .collect();
-            // Each geometry's Gram matrix PᵢᵀPᵢ (its d × ks block), by faer's kernels.
-            let mut gram = Mat::<f32>::zeros(ks, ks);
-            let mut vqt = Mat::<f32>::zeros(nqq, gs.len());
-            for i in 0..gs.len() {
-                let pi = faer::MatRef::from_column_major_slice(p.col_as_slice(i), d, ks);
-                faer::linalg::matmul::matmul(
-                    gram.as_mut(),
-                    faer::Accum::Replace,
-                    pi.transpose(),
-                    pi,
-                    1.0,
-                    faer::Par::Seq,
-                );
-                for j in 0..nqq {
-                    let (a, c) = upper_pair(ks, j);
-                    vqt[(j, i)] = gram[(a, c)];
+            // Each geometry's quadratic form in the materials' coordinates, one column per
+            // term: [Q_ac (a <= c)] once (Q = P Pᵀ, its Gram matrix), [-2 b_a] per rotation;
+            // then every material's error at once, Eᵀ = Uq Vqᵀ + Ul Vlᵀ + |t|², one
+            // contiguous column per geometry.
+            let col = |a: usize, k: usize| p.col_as_slice(a * d + k);
+            let mut vq = Mat::<f32>::zeros(n, nqq);
+            for j in 0..nqq {
+                let (a, c) = upper_pair(ks, j);
+                let out = vq.col_as_slice_mut(j);
+                for k in 0..d {
+                    for ((o, &pa), &pc) in out.iter_mut().zip(col(a, k)).zip(col(c, k)) {
+                        *o += pa * pc;
+                    }
                 }
             }
-            let mut eq = Mat::<f32>::zeros(materials.len(), gs.len());
+            let mut eq = Mat::<f32>::zeros(materials.len(), n);
             faer::linalg::matmul::matmul(
                 eq.as_mut(),
                 faer::Accum::Replace,
                 uq.as_ref(),
-                vqt.as_ref(),
+                vq.as_ref().transpose(),
                 1.0,
                 faer::Par::Seq,
             );
-            let mut out = Vec::with_capacity(gs.len() * KEEP_PER_GEOMETRY * targets.len());
+            let mut out = Vec::with_capacity(n * KEEP_PER_GEOMETRY * targets.len());
             for (ti, ((ri, _, n2), twr)) in targets.iter().zip(&twrs).enumerate() {
-                let vlt = Mat::<f32>::from_fn(ks, gs.len(), |a, i| {
-                    (-2.0 * crate::fastmath::dot32(pgs[i][a], twr)) as f32
-                });
+                let mut vl = Mat::<f32>::zeros(n, ks);
+                for a in 0..ks {
+                    let out = vl.col_as_slice_mut(a);
+                    for (k, &t) in twr.iter().enumerate() {
+                        for (o, &pa) in out.iter_mut().zip(col(a, k)) {
+                            *o += pa * t;
+                        }
+                    }
+                    for o in out.iter_mut() {
+                        *o *= -2.0;
+                    }
+                }
                 // The quadratic terms serve every rotation: the last one takes them.
                 let mut e = if ti + 1 == targets.len() {
                     std::mem::replace(&mut eq, Mat::new())
@@ -304,7 +306,7 @@ pub fn search(
                     e.as_mut(),
                     faer::Accum::Add,
                     ul.as_ref(),
-                    vlt.as_ref(),
+                    vl.as_ref().transpose(),
                     1.0,
                     faer::Par::Seq,
                 );
