@@ -594,6 +594,21 @@ fn general_solver_adds_sharper_starts_only_when_no_start_succeeds() {
     assert!(ended && sharper == 0, "{:?}", st.notes);
 }
 
+/// The general solver's exploration with `g` but its stopping bound.
+fn explore_stopping(
+    lib: &Library,
+    look: &Look,
+    opt: &SolveOptions,
+    g: &biscale::solve::general::GeneralOptions,
+    stop_below: f64,
+) -> (Vec<biscale::solve::Candidate>, biscale::solve::SolveStats) {
+    let g = biscale::solve::general::GeneralOptions {
+        stop_below,
+        ..g.clone()
+    };
+    biscale::solve::general::explore(lib, look, opt, &g).unwrap()
+}
+
 /// The stopping rule: a combination within `stop_below` after the joint search ends the
 /// search there (no start is run); 0 runs every start.
 #[test]
@@ -601,13 +616,7 @@ fn general_solver_stops_when_a_combination_is_within_stop_below() {
     let lib = Library::open(&tiny_library()).unwrap();
     let look = combo(&lib, 10, 2);
     let (opt, g) = small_general(3, 16, 1, 3);
-    let run = |stop_below: f64| {
-        let g = biscale::solve::general::GeneralOptions {
-            stop_below,
-            ..g.clone()
-        };
-        biscale::solve::general::explore(&lib, &look, &opt, &g).unwrap()
-    };
+    let run = |stop_below: f64| explore_stopping(&lib, &look, &opt, &g, stop_below);
     let (all, full) = run(0.0);
     assert!(
         !full.notes.iter().any(|n| n.contains("stopped")),
@@ -644,15 +653,12 @@ fn general_solver_stops_inside_a_start() {
     let lib = Library::open(&tiny_library()).unwrap();
     let look = combo(&lib, 10, 2);
     let (opt, g) = small_general(3, 16, 1, 3);
-    let run = |stop_below: f64| {
-        let g = biscale::solve::general::GeneralOptions {
-            stop_below,
-            joint_pool: 0,
-            max_iterations: 4,
-            ..g.clone()
-        };
-        biscale::solve::general::explore(&lib, &look, &opt, &g).unwrap()
+    let g = biscale::solve::general::GeneralOptions {
+        joint_pool: 0,
+        max_iterations: 4,
+        ..g
     };
+    let run = |stop_below: f64| explore_stopping(&lib, &look, &opt, &g, stop_below);
     let (all, full) = run(0.0);
     // A bound that every visited combination meets: the first iteration meets it (no joint
     // search runs before it).
