@@ -236,7 +236,7 @@ enum Cmd {
         #[arg(long, default_value_t = 3, value_parser = in_range::<usize>(1, 1000))]
         beam: usize,
         /// General solver: pairs of the joint search (both libraries through their
-        /// representatives) re-ranked with their own data (more than 512 narrowed by coarse
+        /// representatives) re-ranked with their own data (more than 32 narrowed by coarse
         /// passes first); the best pairs' materials are the starts. 0: flat-patch and random
         /// starts only.
         #[arg(long, default_value_t = 1024)]
@@ -312,7 +312,7 @@ enum Cmd {
         #[arg(long, default_value_t = 3, value_parser = in_range::<usize>(1, 1000))]
         beam: usize,
         /// General solver: pairs of the joint search (both libraries through their
-        /// representatives) re-ranked with their own data (more than 512 narrowed by coarse
+        /// representatives) re-ranked with their own data (more than 32 narrowed by coarse
         /// passes first); the best pairs' materials are the starts. 0: flat-patch and random
         /// starts only.
         #[arg(long, default_value_t = 1024)]

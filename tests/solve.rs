@@ -368,6 +368,62 @@ fn material_cx_reconstructs_every_material_to_a_small_relative_error() {
     );
 }
 
+/// A joint pool narrowed by coarse passes keeps the pairs it re-ranks, and adds stage 1's best
+/// pair of each further material while the pairs hold fewer materials than wanted (the
+/// general solver's starts), each once.
+#[test]
+fn joint_search_adds_pairs_of_further_materials_for_the_starts() {
+    use std::collections::HashSet;
+    let lib = Library::open(&tiny_library()).unwrap();
+    let (ng, nm) = (lib.manifest.geometries, lib.manifest.materials);
+    let opt = SolveOptions {
+        final_eval: Final::Library,
+        ..Default::default()
+    };
+    let look = combo(&lib, ng / 3, nm / 3);
+    let pool = 4 * biscale::solve::joint::JOINT_COARSE_KEEP;
+    let search = |wanted: usize| {
+        biscale::solve::joint::search(
+            &lib,
+            &look,
+            &opt,
+            pool,
+            wanted,
+            biscale::solve::joint::MAX_OPERATIONS,
+        )
+        .unwrap()
+        .1
+    };
+    let materials = |p: &[biscale::solve::joint::Pair]| -> HashSet<usize> {
+        p.iter().map(|p| p.material).collect()
+    };
+    let (one, many) = (search(1), search(nm));
+    assert_eq!(one.len(), biscale::solve::joint::JOINT_COARSE_KEEP);
+    let key = |p: &biscale::solve::joint::Pair| (p.geometry, p.material, p.rotation);
+    let kept: HashSet<_> = one.iter().map(key).collect();
+    // The same narrowed pairs, with the same errors.
+    for p in &one {
+        assert!(many.iter().any(|q| q == p), "{p:?}");
+    }
+    // Each added pair brings a material the narrowed pairs lack, one pair per material.
+    let added: Vec<_> = many.iter().filter(|p| !kept.contains(&key(p))).collect();
+    assert!(
+        !added.is_empty(),
+        "the tiny library's pool holds more materials"
+    );
+    let mut new = HashSet::new();
+    for p in &added {
+        assert!(!materials(&one).contains(&p.material) && new.insert(p.material));
+    }
+    assert!(many.windows(2).all(|w| w[0].error <= w[1].error));
+    // Two wanted: the narrowed pairs' materials already reach it, or one is added.
+    let two = search(2);
+    assert_eq!(
+        materials(&two).len(),
+        materials(&one).len().max(2).min(materials(&many).len())
+    );
+}
+
 /// The general solver's joint search scores every (geometry, material) pair through both
 /// libraries' representatives; the true pair of a library combination is in its re-ranked pool
 /// and nothing in the pool is worse-ranked than it by its own data.
@@ -387,6 +443,7 @@ fn joint_search_finds_the_pair_of_a_library_combination() {
             &look,
             &opt,
             32,
+            1,
             biscale::solve::joint::MAX_OPERATIONS,
         )
         .unwrap();
@@ -418,9 +475,15 @@ fn joint_rep_pairs_reproduce_a_representative_materials_values() {
         psi: 2,
         ..Default::default()
     };
-    let (_, _, reps) =
-        biscale::solve::joint::search(&lib, &look, &opt, 8, biscale::solve::joint::MAX_OPERATIONS)
-            .unwrap();
+    let (_, _, reps) = biscale::solve::joint::search(
+        &lib,
+        &look,
+        &opt,
+        8,
+        1,
+        biscale::solve::joint::MAX_OPERATIONS,
+    )
+    .unwrap();
     let mreps = lib.array("material/representatives.bsa").unwrap();
     let greps = lib.array("geometry/representatives.bsa").unwrap();
     let (mreps, greps) = (mreps.u32s().unwrap(), greps.u32s().unwrap());
@@ -463,7 +526,7 @@ fn joint_search_keeps_to_its_budget() {
         final_eval: Final::Library,
         ..Default::default()
     };
-    let (scanned, pairs, _) = biscale::solve::joint::search(&lib, &look, &opt, 16, 1.0).unwrap();
+    let (scanned, pairs, _) = biscale::solve::joint::search(&lib, &look, &opt, 16, 1, 1.0).unwrap();
     assert_eq!(scanned, ng * few);
     assert!(!pairs.is_empty() && pairs.windows(2).all(|w| w[0].error <= w[1].error));
     let (closest, _) =

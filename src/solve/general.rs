@@ -125,6 +125,7 @@ pub fn explore(
             look,
             &inner,
             g.joint_pool,
+            starts,
             super::joint::MAX_OPERATIONS,
         )?;
         stats.search_seconds += t.elapsed().as_secs_f64();
