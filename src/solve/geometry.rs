@@ -302,13 +302,9 @@ pub fn solve_with(
             )
         },
     );
-    // `[(error, item, rotation)]`, rotation-major.
-    let scored: Vec<(f64, usize, usize)> = first
-        .into_iter()
-        .enumerate()
-        .flat_map(|(ri, e)| e.into_iter().enumerate().map(move |(j, e)| (e, j, ri)))
-        .collect();
-    let errs: Vec<f64> = scored.iter().map(|s| s.0).collect();
+    // Stage 1's errors rotation-major: entry `ri · n + j` is item `j` at rotation `ri`.
+    let errs: Vec<f64> = first.concat();
+    let scored = |i: usize| (errs[i], i % n, i / n);
     let rankings: Vec<Vec<usize>> = std::iter::once(smallest(&errs, depth))
         .chain(binned?)
         .chain(refit)
@@ -329,7 +325,7 @@ pub fn solve_with(
             ItemData::Lobes { lobes, pf } => {
                 // The pool's records, asked for at once: from a library larger than memory
                 // the disk then serves them together rather than one fault at a time.
-                let js: Vec<usize> = pool.iter().map(|&i| scored[i].1).collect();
+                let js: Vec<usize> = pool.iter().map(|&i| scored(i).1).collect();
                 lobes.will_need(&js);
                 narrow(
                     pool.to_vec(),
@@ -344,7 +340,7 @@ pub fn solve_with(
                             .collect();
                         pool.par_iter()
                             .map(|&i| {
-                                let (_, j, ri) = scored[i];
+                                let (_, j, ri) = scored(i);
                                 let (s, t, at) = &coarse[ri];
                                 Ok(s.rel_error_scaled(t, &lobes.get(j)?.fbar(pf, at), anyb))
                             })
@@ -356,7 +352,7 @@ pub fn solve_with(
         };
         pool.par_iter()
             .map(|&i| {
-                let (se, j, ri) = scored[i];
+                let (se, j, ri) = scored(i);
                 let r = &rots[ri];
                 let v = data.values(j, r)?;
                 let own = r.samples.rel_error(&r.target, &v);

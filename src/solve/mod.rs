@@ -328,13 +328,35 @@ pub fn smallest<T: Score>(errors: &[T], n: usize) -> Vec<usize> {
     if n <= SMALL_N && errors.len() > 4 * n {
         return smallest_few(errors, n);
     }
-    let mut idx: Vec<usize> = (0..errors.len()).filter(|&i| errors[i].finite()).collect();
     let order = |a: &usize, b: &usize| errors[*a].order(&errors[*b]).then(a.cmp(b));
-    // Partition around the n-th first (linear time), then sort only the n kept.
-    if n < idx.len() {
-        idx.select_nth_unstable_by(n, order);
-        idx.truncate(n);
-    }
+    // The n-th smallest value, found on a copy of the values (linear time, and the
+    // comparisons read contiguous values rather than through indices), then one pass for the
+    // indices below it and, in index order, as many equal to it as make n; only the n kept
+    // are sorted.
+    let mut values: Vec<T> = errors.iter().copied().filter(|e| e.finite()).collect();
+    let mut idx: Vec<usize> = if n == 0 {
+        Vec::new()
+    } else if n < values.len() {
+        let (before, &mut nth, _) = values.select_nth_unstable_by(n - 1, |a, b| a.order(b));
+        let mut ties = n - before.iter().filter(|v| v.order(&nth).is_lt()).count();
+        let mut idx = Vec::with_capacity(n);
+        for (i, e) in errors.iter().enumerate() {
+            if !e.finite() {
+                continue;
+            }
+            match e.order(&nth) {
+                std::cmp::Ordering::Less => idx.push(i),
+                std::cmp::Ordering::Equal if ties > 0 => {
+                    ties -= 1;
+                    idx.push(i);
+                }
+                _ => {}
+            }
+        }
+        idx
+    } else {
+        (0..errors.len()).filter(|&i| errors[i].finite()).collect()
+    };
     idx.sort_by(order);
     idx
 }
@@ -527,14 +549,12 @@ pub fn search_errors_multi(
     let q = aw.transpose() * &aw;
     let factor = gram_factor(q.as_ref());
     let q = Mat::<f32>::from_fn(c, c, |i, j| q[(i, j)] as f32);
-    let bvecs: Vec<Vec<f64>> = tws
-        .iter()
-        .map(|tw| {
-            (0..c)
-                .map(|k| (0..np).map(|p| aw[(p, k)] * tw[p]).sum())
-                .collect()
-        })
-        .collect();
+    // The targets' cross terms `A_wᵀ t_w`, one row per target: every item's linear terms are
+    // one product per block, in `f32` as the quadratic terms (one dot product per item and
+    // target before: at psi 8 they cost more than the Gram product).
+    let bm = Mat::<f32>::from_fn(nt, c, |ti, k| {
+        (0..np).map(|p| aw[(p, k)] * tws[ti][p]).sum::<f64>() as f32
+    });
     // One block's Gram scores, `[target][item in block]`.
     let scan_block = |j0: usize| -> (usize, Vec<f64>) {
         let n = SEARCH_BLOCK.min(items - j0);
@@ -547,6 +567,15 @@ pub fn search_errors_multi(
             Some(r) => (triangular_times(r.as_ref(), xm), true),
             None => (&q * xm, false),
         };
+        let mut lins = Mat::<f32>::zeros(nt, n);
+        faer::linalg::matmul::matmul(
+            lins.as_mut(),
+            faer::Accum::Replace,
+            bm.as_ref(),
+            xm,
+            1.0f32,
+            faer::Par::Seq,
+        );
         let mut out = vec![0.0; nt * n];
         for (j, xj) in xb.chunks_exact(c).enumerate() {
             let col = prod.col_as_slice(j);
@@ -555,9 +584,8 @@ pub fn search_errors_multi(
             } else {
                 crate::fastmath::dot(xj, col)
             };
-            for (ti, (b, &n2)) in bvecs.iter().zip(&n2s).enumerate() {
-                let lin = crate::fastmath::dot(xj, b);
-                out[ti * n + j] = rel(n2, lin, quad);
+            for (ti, &n2) in n2s.iter().enumerate() {
+                out[ti * n + j] = rel(n2, lins[(ti, j)] as f64, quad);
             }
         }
         (n, out)
@@ -830,8 +858,8 @@ mod tests {
         want.sort_by(|&a, &b| big[a].total_cmp(&big[b]).then(a.cmp(&b)));
         want.truncate(300);
         assert_eq!(smallest(&big, 300), want);
-        // The one-pass path for small n (many ties, signed zeros, NaN and infinities) gives what
-        // sorting every index gives.
+        // Both paths, the one pass for small n and the n-th value's for larger n (many ties,
+        // signed zeros, NaN and infinities), give what sorting every index gives.
         let odd = [f64::NAN, f64::INFINITY, f64::NEG_INFINITY, -0.0, 0.0];
         for seed in 0..20 {
             let mut r = crate::rng::Rng::new(seed);
@@ -843,7 +871,7 @@ mod tests {
                 .collect();
             let mut all: Vec<usize> = (0..v.len()).filter(|&i| v[i].is_finite()).collect();
             all.sort_by(|&a, &b| v[a].total_cmp(&v[b]).then(a.cmp(&b)));
-            for n in [1, 8, 32] {
+            for n in [1, 8, 32, 33, 100, 700] {
                 assert_eq!(smallest(&v, n), all[..n], "seed {seed}, n {n}");
             }
         }
