@@ -35,6 +35,18 @@ fn tiny_library() -> PathBuf {
     .clone()
 }
 
+/// The tiny library, its numbers of geometries and materials, and options that answer from
+/// library data (the joint search's tests).
+fn tiny_answering_from_library() -> (Library, usize, usize, SolveOptions) {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let (ng, nm) = (lib.manifest.geometries, lib.manifest.materials);
+    let opt = SolveOptions {
+        final_eval: Final::Library,
+        ..Default::default()
+    };
+    (lib, ng, nm, opt)
+}
+
 /// The look of library geometry `g` with library material `m` under the fast forward model.
 fn combo(lib: &Library, g: usize, m: usize) -> Look {
     let gi = lib.geometry_items().unwrap();
@@ -374,12 +386,7 @@ fn material_cx_reconstructs_every_material_to_a_small_relative_error() {
 #[test]
 fn joint_search_adds_pairs_of_further_materials_for_the_starts() {
     use std::collections::HashSet;
-    let lib = Library::open(&tiny_library()).unwrap();
-    let (ng, nm) = (lib.manifest.geometries, lib.manifest.materials);
-    let opt = SolveOptions {
-        final_eval: Final::Library,
-        ..Default::default()
-    };
+    let (lib, ng, nm, opt) = tiny_answering_from_library();
     let look = combo(&lib, ng / 3, nm / 3);
     let pool = 4 * biscale::solve::joint::JOINT_COARSE_KEEP;
     let search = |wanted: usize| {
@@ -429,12 +436,7 @@ fn joint_search_adds_pairs_of_further_materials_for_the_starts() {
 /// and nothing in the pool is worse-ranked than it by its own data.
 #[test]
 fn joint_search_finds_the_pair_of_a_library_combination() {
-    let lib = Library::open(&tiny_library()).unwrap();
-    let (ng, nm) = (lib.manifest.geometries, lib.manifest.materials);
-    let opt = SolveOptions {
-        final_eval: Final::Library,
-        ..Default::default()
-    };
+    let (lib, ng, nm, opt) = tiny_answering_from_library();
     let mut first = 0;
     for (g, m) in [(2, 1), (ng / 2, nm / 2), (ng - 3, nm - 1)] {
         let look = combo(&lib, g, m);
@@ -514,18 +516,13 @@ fn joint_rep_pairs_reproduce_a_representative_materials_values() {
 /// pool of pairs made of those materials.
 #[test]
 fn joint_search_keeps_to_its_budget() {
-    let lib = Library::open(&tiny_library()).unwrap();
-    let (ng, nm) = (lib.manifest.geometries, lib.manifest.materials);
+    let (lib, ng, nm, opt) = tiny_answering_from_library();
     let few = biscale::solve::joint::MIN_MATERIALS;
     assert!(
         nm > few,
         "the tiny library needs more than {few} materials for this test"
     );
     let look = combo(&lib, 2, 1);
-    let opt = SolveOptions {
-        final_eval: Final::Library,
-        ..Default::default()
-    };
     let (scanned, pairs, _) = biscale::solve::joint::search(&lib, &look, &opt, 16, 1, 1.0).unwrap();
     assert_eq!(scanned, ng * few);
     assert!(!pairs.is_empty() && pairs.windows(2).all(|w| w[0].error <= w[1].error));
