@@ -304,6 +304,9 @@ pub fn exact_values(
 pub trait Score: Copy {
     fn finite(self) -> bool;
     fn order(&self, other: &Self) -> std::cmp::Ordering;
+    /// Whether every value of `chunk` is above `bound` (`>`, so signed zeros, NaN and equal
+    /// values say no): none of them orders before it.
+    fn all_above(chunk: &[Self], bound: Self) -> bool;
 }
 
 macro_rules! score_for_float {
@@ -316,6 +319,11 @@ macro_rules! score_for_float {
             #[inline]
             fn order(&self, other: &Self) -> std::cmp::Ordering {
                 self.total_cmp(other)
+            }
+            #[inline]
+            fn all_above(chunk: &[Self], bound: Self) -> bool {
+                // Without branches, so that the test runs in vector registers.
+                chunk.iter().fold(true, |a, &v| a & (v > bound))
             }
         }
     )*};
@@ -365,6 +373,9 @@ pub fn smallest<T: Score>(errors: &[T], n: usize) -> Vec<usize> {
 /// cost one comparison (the joint search takes the best 8 of every geometry's materials).
 const SMALL_N: usize = 32;
 
+/// Values per chunk [`smallest_few`] tests at once.
+const FEW_CHUNK: usize = 16;
+
 /// [`smallest`] for small `n`: one pass, the best so far kept sorted; a value enters only if it
 /// beats the last kept (ties by index, and indices ascend, so an equal value never does).
 fn smallest_few<T: Score>(errors: &[T], n: usize) -> Vec<usize> {
@@ -372,19 +383,30 @@ fn smallest_few<T: Score>(errors: &[T], n: usize) -> Vec<usize> {
     if n == 0 {
         return Vec::new();
     }
-    for (i, &e) in errors.iter().enumerate() {
-        if !e.finite() {
-            continue;
-        }
+    // Once `n` are kept, a chunk whose every value is above the last kept is passed over
+    // whole: most of a long list's chunks are.
+    for (c, chunk) in errors.chunks(FEW_CHUNK).enumerate() {
         if best.len() == n {
-            match best.last() {
-                Some(&(last, _)) if e.order(&last).is_lt() => {}
-                _ => continue,
+            if let Some(&(last, _)) = best.last() {
+                if T::all_above(chunk, last) {
+                    continue;
+                }
             }
         }
-        let at = best.partition_point(|&(v, _)| v.order(&e).is_le());
-        best.insert(at, (e, i));
-        best.truncate(n);
+        for (k, &e) in chunk.iter().enumerate() {
+            if !e.finite() {
+                continue;
+            }
+            if best.len() == n {
+                match best.last() {
+                    Some(&(last, _)) if e.order(&last).is_lt() => {}
+                    _ => continue,
+                }
+            }
+            let at = best.partition_point(|&(v, _)| v.order(&e).is_le());
+            best.insert(at, (e, c * FEW_CHUNK + k));
+            best.truncate(n);
+        }
     }
     best.into_iter().map(|(_, i)| i).collect()
 }
