@@ -341,10 +341,11 @@ pub fn smallest<T: Score>(errors: &[T], n: usize) -> Vec<usize> {
     // comparisons read contiguous values rather than through indices), then one pass for the
     // indices below it and, in index order, as many equal to it as make n; only the n kept
     // are sorted.
-    let mut values: Vec<T> = errors.iter().copied().filter(|e| e.finite()).collect();
+    let finite = errors.iter().filter(|e| e.finite()).count();
     let mut idx: Vec<usize> = if n == 0 {
         Vec::new()
-    } else if n < values.len() {
+    } else if n < finite {
+        let mut values: Vec<T> = errors.iter().copied().filter(|e| e.finite()).collect();
         let (before, &mut nth, _) = values.select_nth_unstable_by(n - 1, |a, b| a.order(b));
         let mut ties = n - before.iter().filter(|v| v.order(&nth).is_lt()).count();
         let mut idx = Vec::with_capacity(n);
