@@ -290,35 +290,44 @@ pub fn search(
                 1.0,
                 faer::Par::Seq,
             );
-            let mut out = Vec::with_capacity(n * KEEP_PER_GEOMETRY * targets.len());
-            for (ti, ((ri, _, n2), twr)) in targets.iter().zip(&twrs).enumerate() {
-                let mut vl = Mat::<f32>::zeros(n, ks);
-                for a in 0..ks {
-                    let out = vl.col_as_slice_mut(a);
-                    for (k, &t) in twr.iter().enumerate() {
-                        for (o, &pa) in out.iter_mut().zip(col(a, k)) {
-                            *o += pa * t;
+            // Each rotation's errors, materials × geometries.
+            let es: Vec<Mat<f32>> = twrs
+                .iter()
+                .enumerate()
+                .map(|(ti, twr)| {
+                    let mut vl = Mat::<f32>::zeros(n, ks);
+                    for a in 0..ks {
+                        let out = vl.col_as_slice_mut(a);
+                        for (k, &t) in twr.iter().enumerate() {
+                            for (o, &pa) in out.iter_mut().zip(col(a, k)) {
+                                *o += pa * t;
+                            }
+                        }
+                        for o in out.iter_mut() {
+                            *o *= -2.0;
                         }
                     }
-                    for o in out.iter_mut() {
-                        *o *= -2.0;
-                    }
-                }
-                // The quadratic terms serve every rotation: the last one takes them.
-                let mut e = if ti + 1 == targets.len() {
-                    std::mem::replace(&mut eq, Mat::new())
-                } else {
-                    eq.clone()
-                };
-                faer::linalg::matmul::matmul(
-                    e.as_mut(),
-                    faer::Accum::Add,
-                    ul.as_ref(),
-                    vl.as_ref().transpose(),
-                    1.0,
-                    faer::Par::Seq,
-                );
-                for (i, g) in gs.clone().enumerate() {
+                    // The quadratic terms serve every rotation: the last one takes them.
+                    let mut e = if ti + 1 == targets.len() {
+                        std::mem::replace(&mut eq, Mat::new())
+                    } else {
+                        eq.clone()
+                    };
+                    faer::linalg::matmul::matmul(
+                        e.as_mut(),
+                        faer::Accum::Add,
+                        ul.as_ref(),
+                        vl.as_ref().transpose(),
+                        1.0,
+                        faer::Par::Seq,
+                    );
+                    e
+                })
+                .collect();
+            let mut out = Vec::with_capacity(n * KEEP_PER_GEOMETRY * targets.len());
+            for (i, g) in gs.clone().enumerate() {
+                let first = out.len();
+                for ((ri, _, n2), e) in targets.iter().zip(&es) {
                     // `|t - f|² - |t|²` ranks as the error does; the root only for the kept.
                     let col = e.col_as_slice(i);
                     out.extend(smallest(col, KEEP_PER_GEOMETRY).into_iter().map(|k| {
@@ -332,7 +341,19 @@ pub fn search(
                         }
                     }));
                 }
+                // One rotation per (geometry, material), its best (below): rotations of a
+                // nearly isotropic geometry score alike and would fill the pool with copies of
+                // one pair. Sorted geometry by geometry, the blocks' pairs come out in the
+                // order one sort of them all would give; that sort, after the scan and on one
+                // processor, took 0.09–0.12 s per case on `paper`.
+                out[first..].sort_by(|a, b| {
+                    a.material
+                        .cmp(&b.material)
+                        .then(a.error.total_cmp(&b.error))
+                        .then(a.rotation.cmp(&b.rotation))
+                });
             }
+            out.dedup_by_key(|p| (p.geometry, p.material));
             out
         };
         // Subnormal products are flushed (`fastmath::without_subnormals`).
@@ -342,16 +363,8 @@ pub fn search(
             .collect();
         kept.extend(best.into_iter().flatten());
     }
+    // `kept` is in (geometry, material) order, each pair once.
     let scanned = gitems * materials.len() * rots.len();
-    // One rotation per (geometry, material): its best. (Rotations of a nearly isotropic geometry
-    // score alike and would fill the pool with copies of one pair.)
-    kept.sort_by(|a, b| {
-        (a.geometry, a.material)
-            .cmp(&(b.geometry, b.material))
-            .then(a.error.total_cmp(&b.error))
-            .then(a.rotation.cmp(&b.rotation))
-    });
-    kept.dedup_by_key(|p| (p.geometry, p.material));
     let errs: Vec<f64> = kept.iter().map(|p| p.error).collect();
     let chosen: Vec<Pair> = smallest(&errs, pool.max(1))
         .into_iter()
