@@ -242,7 +242,8 @@ enum Cmd {
         #[arg(long, default_value_t = 1024)]
         joint_pool: usize,
         /// General solver: stop once a combination is within this relative error (0.01 = 1 %;
-        /// 0: run every start and iteration).
+        /// 0: run every start and iteration), after the iteration that found it, or at once
+        /// when it is within 0.01 % (the look itself).
         #[arg(long, default_value_t = biscale::solve::general::STOP_BELOW, value_parser = in_range(0.0, 1.0))]
         stop_below: f64,
         /// Weight of the colour term (Eq. 13), 0..1.
@@ -318,7 +319,8 @@ enum Cmd {
         #[arg(long, default_value_t = 1024)]
         joint_pool: usize,
         /// General solver: stop once a combination is within this relative error (0.01 = 1 %;
-        /// 0: run every start and iteration).
+        /// 0: run every start and iteration), after the iteration that found it, or at once
+        /// when it is within 0.01 % (the look itself).
         #[arg(long, default_value_t = biscale::solve::general::STOP_BELOW, value_parser = in_range(0.0, 1.0))]
         stop_below: f64,
         /// Solvers to run, comma-separated (each with its exhaustive scan) [default: all]

@@ -737,6 +737,38 @@ fn general_solver_stops_inside_a_start() {
     assert!(st.items_searched < full.items_searched, "{:?}", st.notes);
 }
 
+/// A combination that is the look itself (a library combination as the library represents
+/// it) ends the search in the iteration that finds it, without the rest of its beam; with the
+/// stopping rule off every start runs, and the answer is the same combination.
+#[test]
+fn general_solver_ends_on_the_look_itself() {
+    let (lib, _, _, opt) = tiny_answering_from_library();
+    let (g0, m0) = (10, 2);
+    let look = biscale::validate::library_look(&lib, g0, m0).unwrap();
+    let g = biscale::solve::general::GeneralOptions {
+        joint_pool: 0,
+        starts: 3,
+        beam: 3,
+        ..Default::default()
+    };
+    let run = |stop_below: f64| explore_stopping(&lib, &look, &opt, &g, stop_below);
+    let (all, full) = run(0.0);
+    assert_eq!((all[0].geometry, all[0].material), (Some(g0), Some(m0)));
+    assert!(
+        all[0].error <= biscale::solve::general::SAME_LOOK,
+        "{}",
+        all[0].error
+    );
+    let (early, st) = run(biscale::solve::general::STOP_BELOW);
+    assert!(
+        st.notes.iter().any(|n| n.contains("(the look itself)")),
+        "{:?}",
+        st.notes
+    );
+    assert_eq!((early[0].geometry, early[0].material), (Some(g0), Some(m0)));
+    assert!(st.items_searched < full.items_searched, "{:?}", st.notes);
+}
+
 /// Visually equivalent details: every kept combination is within the bound, no two are the
 /// same pair, and the first pass keeps only combinations that differ in both parts.
 #[test]
