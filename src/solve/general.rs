@@ -430,7 +430,7 @@ pub const LAST_SOLVES: usize = 2;
 /// A combination within this relative error (library data) is the look itself: with the
 /// stopping rule on, the alternation's iteration that found it ends there, without the rest of
 /// its beam's material solves (each 0.03 s on `paper`). In the paper's protocol (targets that
-/// are library combinations) the original scores about 10⁻⁷ by library data; against the full
+/// are library combinations) the original scores 0 by library data (to rounding); against the full
 /// forward model no library combination comes near it, so the rule never applies there.
 pub const SAME_LOOK: f64 = 1e-4;
 
