@@ -464,6 +464,34 @@ fn joint_search_finds_the_pair_of_a_library_combination() {
     );
 }
 
+/// With several rotations the joint search keeps each (geometry, material) once, at its best
+/// rotation: rotations of a nearly isotropic geometry would otherwise fill the pool with copies.
+#[test]
+fn joint_search_keeps_each_pair_once_over_rotations() {
+    let (lib, ng, nm, opt) = tiny_answering_from_library();
+    let opt = SolveOptions { psi: 4, ..opt };
+    let look = combo(&lib, ng / 2, nm / 2);
+    let (scanned, pairs, _) = biscale::solve::joint::search(
+        &lib,
+        &look,
+        &opt,
+        64,
+        1,
+        biscale::solve::joint::MAX_OPERATIONS,
+    )
+    .unwrap();
+    assert_eq!(scanned, ng * nm * 4);
+    let mut keys: Vec<(usize, usize)> = pairs.iter().map(|p| (p.geometry, p.material)).collect();
+    let n = keys.len();
+    keys.sort_unstable();
+    keys.dedup();
+    assert_eq!(keys.len(), n, "a (geometry, material) twice in the pool");
+    assert!(
+        pairs.iter().any(|p| p.rotation > 0),
+        "every pair at rotation 0"
+    );
+}
+
 /// The joint search's representative pairs give a library material's values on the geometry
 /// representatives through its CX weights; for a material that is itself a representative
 /// (weights: one 1, the rest 0) they are its own values, evaluated directly, at the shared
