@@ -134,8 +134,9 @@ pub fn explore(
         let all = lib.manifest.geometries * mats.len() * inner.psi.max(1);
         if scanned < all {
             stats.notes.push(format!(
-                "joint search: {scanned} of {all} (geometry, material, rotation) pairs, the \
-                 materials closest to the look on a flat patch"
+                "joint search: {scanned} of {all} (geometry, material, rotation) pairs: every \
+                 material on a probe of the geometries, then every geometry with the materials \
+                 that came closest there"
             ));
         }
         for p in &pairs {

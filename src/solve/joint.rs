@@ -111,8 +111,19 @@ pub const JOINT_COARSE_KEEP: usize = 32;
 /// Multiply-adds the pair scan may spend: 500 times the default library's scan (730 geometries
 /// × 160 materials × `13² + 13` = 2 × 10⁷). A paper-sized library (164,431 geometries × 4,101
 /// distinct BRDFs) would need thousands of times the default's, so there only the materials
-/// closest to the look on a flat patch are paired with every geometry.
+/// that come closest to the look on a probe of the geometries ([`MATERIAL_PROBE`]) are paired
+/// with every geometry.
 pub const MAX_OPERATIONS: f64 = 1e10;
+
+/// At most this many geometries (every `n`-th of the library, so that each family and amplitude
+/// is among them: 4,011 on `paper`) on which every material is scored to choose the materials of a scan that cannot pair them all:
+/// each material's best relative error there ranks it. On `paper` (289 of 4,168 materials
+/// paired) the original material of a validation case was among those chosen in 23 of 40 cases,
+/// against 10 of 40 when they were the materials closest to the look on a flat patch (the look
+/// taken as a plain BRDF: a material sharper than the look, which a rough geometry blurs,
+/// ranks far down there); every 20th, 40th or 80th geometry gave the same rates
+/// (docs/solvers.md, "The joint scan's materials from a probe of the geometries").
+pub const MATERIAL_PROBE: usize = 4096;
 
 /// Fewest materials the pair scan pairs with every geometry, whatever the budget.
 pub const MIN_MATERIALS: usize = 4;
@@ -122,9 +133,9 @@ pub const MIN_MATERIALS: usize = 4;
 /// each further material while the re-ranked pairs hold fewer than `materials_wanted`
 /// materials (the general solver's starts). Returns the number of pairs scanned,
 /// the re-ranked pool, best first, and the representative pairs' values. When scoring every
-/// pair would cost more than `max_operations` multiply-adds, only the materials that best
-/// reproduce the look on a flat patch (the material solver's ranking) are paired, as many as
-/// the budget allows (at least [`MIN_MATERIALS`]).
+/// pair would cost more than `max_operations` multiply-adds, only the materials that come
+/// closest to the look on a probe of [`MATERIAL_PROBE`] geometries are paired, as many as the
+/// budget allows (at least [`MIN_MATERIALS`]).
 pub fn search(
     lib: &Library,
     look: &Look,
@@ -161,12 +172,8 @@ pub fn search(
     let per_pair = (ks * ks + ks) as f64;
     let rotations = opt.psi.max(1) as f64;
     let affordable = (max_operations / (gitems as f64 * rotations * per_pair)).floor() as usize;
-    let materials: Vec<usize> = if affordable >= mitems.len() {
-        (0..mitems.len()).collect()
-    } else {
-        let n = affordable.max(MIN_MATERIALS).min(mitems.len());
-        super::material::closest_on_flat_patch(lib, look, n, opt)?.0
-    };
+    let n_scan = affordable.max(MIN_MATERIALS).min(mitems.len());
+    let all_materials: Vec<usize> = (0..mitems.len()).collect();
     let rep_tables: Vec<_> = mreps
         .iter()
         .map(|&s| {
@@ -180,13 +187,10 @@ pub fn search(
             rotated_samples(look, &layout.lights, psi, &opt.sampling)
         })
         .collect();
-    // Each scanned material's side of the quadratic form: the products y_a y_c (×2 off the
-    // diagonal), and y_a.
     let nqq = ks * (ks + 1) / 2;
-    let y_of = |k: usize| &mx[materials[k] * ks..(materials[k] + 1) * ks];
-    let uq = Mat::<f32>::from_fn(materials.len(), nqq, |k, j| upper_term(y_of(k), ks, j));
-    let ul = Mat::<f32>::from_fn(materials.len(), ks, |k, j| y_of(k)[j]);
     let mut kept: Vec<Pair> = Vec::new();
+    // Pairs scored: the probe's (below) and the scan's.
+    let mut scanned = 0;
     // Every rotation is scanned at one shared sample set, rotation 0's (as the geometry solver's
     // stage 1): the representative pairs, their basis and each geometry's quadratic form do not
     // depend on the target, so only the linear term is computed per rotation. Stage 2 below
@@ -246,17 +250,24 @@ pub fn search(
                     .collect()
             })
             .collect();
-        let blocks: Vec<std::ops::Range<usize>> = (0..gitems)
-            .step_by(GEOMETRY_BLOCK)
-            .map(|g0| g0..(g0 + GEOMETRY_BLOCK).min(gitems))
-            .collect();
-        // One block of geometries: every material's error for each, the best kept.
-        let scan_geometries = |gs: std::ops::Range<usize>| -> Vec<Pair> {
+        // Each material's side of the quadratic form: the products y_a y_c (×2 off the
+        // diagonal), and y_a; one row per material.
+        let material_terms = |materials: &[usize]| -> (Mat<f32>, Mat<f32>) {
+            let y_of = |k: usize| &mx[materials[k] * ks..(materials[k] + 1) * ks];
+            (
+                Mat::<f32>::from_fn(materials.len(), nqq, |k, j| upper_term(y_of(k), ks, j)),
+                Mat::<f32>::from_fn(materials.len(), ks, |k, j| y_of(k)[j]),
+            )
+        };
+        // One block of geometries `gs` with the materials of `(uq, ul)`: each target's
+        // (rotation's) `|t - f|² - |t|²` (which ranks as the error does), materials ×
+        // geometries.
+        let block_errors = |gs: &[usize], uq: &Mat<f32>, ul: &Mat<f32>| -> Vec<Mat<f32>> {
             // P for the block's geometries at once, one row per geometry: Xᵀ · rt,
             // geometries × (ks·d), so that entry (a, k) of every geometry's P is one contiguous
             // column and the terms below run down the block's geometries in vector registers.
             let n = gs.len();
-            let x = Mat::from_fn(n, kr, |i, r| gx[(gs.start + i) * kr + r]);
+            let x = Mat::from_fn(n, kr, |i, r| gx[gs[i] * kr + r]);
             let mut p = Mat::<f32>::zeros(n, ks * d);
             faer::linalg::matmul::matmul(
                 p.as_mut(),
@@ -281,7 +292,7 @@ pub fn search(
                     }
                 }
             }
-            let mut eq = Mat::<f32>::zeros(materials.len(), n);
+            let mut eq = Mat::<f32>::zeros(uq.nrows(), n);
             faer::linalg::matmul::matmul(
                 eq.as_mut(),
                 faer::Accum::Replace,
@@ -291,8 +302,7 @@ pub fn search(
                 faer::Par::Seq,
             );
             // Each rotation's errors, materials × geometries.
-            let es: Vec<Mat<f32>> = twrs
-                .iter()
+            twrs.iter()
                 .enumerate()
                 .map(|(ti, twr)| {
                     let mut vl = Mat::<f32>::zeros(n, ks);
@@ -323,9 +333,48 @@ pub fn search(
                     );
                     e
                 })
-                .collect();
-            let mut out = Vec::with_capacity(n * KEEP_PER_GEOMETRY * targets.len());
-            for (i, g) in gs.clone().enumerate() {
+                .collect()
+        };
+        // Subnormal products are flushed (`fastmath::without_subnormals`).
+        let errors_of = |gs: &[usize], uq: &Mat<f32>, ul: &Mat<f32>| {
+            crate::fastmath::without_subnormals(|| block_errors(gs, uq, ul))
+        };
+        // The materials paired with every geometry: all of them when the budget allows, else
+        // the `n_scan` that come closest to the look on a probe of MATERIAL_PROBE geometries
+        // spread over the library (every material with each; a material's score is its best
+        // relative error there).
+        let materials = if n_scan >= mitems.len() {
+            all_materials
+        } else {
+            let stride = gitems.div_ceil(MATERIAL_PROBE).max(1);
+            let probe: Vec<usize> = (0..gitems).step_by(stride).collect();
+            let (uq, ul) = material_terms(&all_materials);
+            let best = probe
+                .par_chunks(GEOMETRY_BLOCK)
+                .map(|gs| {
+                    let mut best = vec![f64::INFINITY; mitems.len()];
+                    for ((_, _, n2), e) in targets.iter().zip(errors_of(gs, &uq, &ul)) {
+                        for i in 0..gs.len() {
+                            for (b, &v) in best.iter_mut().zip(e.col_as_slice(i)) {
+                                *b = b.min((n2 + v as f64) / n2);
+                            }
+                        }
+                    }
+                    best
+                })
+                .reduce(
+                    || vec![f64::INFINITY; mitems.len()],
+                    |a, b| a.iter().zip(&b).map(|(a, b)| a.min(*b)).collect(),
+                );
+            scanned += probe.len() * mitems.len() * rots.len();
+            smallest(&best, n_scan)
+        };
+        let (uq, ul) = material_terms(&materials);
+        // One block of geometries: every material's error for each, the best kept.
+        let scan_geometries = |gs: &[usize]| -> Vec<Pair> {
+            let es = errors_of(gs, &uq, &ul);
+            let mut out = Vec::with_capacity(gs.len() * KEEP_PER_GEOMETRY * targets.len());
+            for (i, &g) in gs.iter().enumerate() {
                 let first = out.len();
                 for ((ri, _, n2), e) in targets.iter().zip(&es) {
                     // `|t - f|² - |t|²` ranks as the error does; the root only for the kept.
@@ -356,15 +405,15 @@ pub fn search(
             out.dedup_by_key(|p| (p.geometry, p.material));
             out
         };
-        // Subnormal products are flushed (`fastmath::without_subnormals`).
-        let best: Vec<Vec<Pair>> = blocks
-            .into_par_iter()
-            .map(|gs| crate::fastmath::without_subnormals(|| scan_geometries(gs)))
+        let geometries: Vec<usize> = (0..gitems).collect();
+        let best: Vec<Vec<Pair>> = geometries
+            .par_chunks(GEOMETRY_BLOCK)
+            .map(scan_geometries)
             .collect();
         kept.extend(best.into_iter().flatten());
+        scanned += gitems * materials.len() * rots.len();
     }
     // `kept` is in (geometry, material) order, each pair once.
-    let scanned = gitems * materials.len() * rots.len();
     let errs: Vec<f64> = kept.iter().map(|p| p.error).collect();
     let chosen: Vec<Pair> = smallest(&errs, pool.max(1))
         .into_iter()

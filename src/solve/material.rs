@@ -213,8 +213,8 @@ pub fn solve(
 }
 
 /// The `n` library materials that best reproduce the look on a flat patch (the look taken as a
-/// plain BRDF), best first, with the solve's statistics: the general solver's first start, and
-/// the joint search's material subset when a library is too large to pair every material.
+/// plain BRDF), best first, with the solve's statistics: a start of the general solver when the
+/// joint search's pairs hold too few materials.
 pub fn closest_on_flat_patch(
     lib: &Library,
     look: &Look,
