@@ -108,21 +108,25 @@ const GEOMETRY_BLOCK: usize = 256;
 /// starts want more materials than these hold.
 pub const JOINT_COARSE_KEEP: usize = 32;
 
-/// Multiply-adds the pair scan may spend: 500 times the default library's scan (730 geometries
+/// Multiply-adds the pair scan may spend: 250 times the default library's scan (730 geometries
 /// × 160 materials × `13² + 13` = 2 × 10⁷). A paper-sized library (164,431 geometries × 4,101
 /// distinct BRDFs) would need thousands of times the default's, so there only the materials
 /// that come closest to the look on a probe of the geometries ([`MATERIAL_PROBE`]) are paired
-/// with every geometry.
-pub const MAX_OPERATIONS: f64 = 1e10;
+/// with every geometry: 144 of 4,168 on `paper`. With the probe, 36, 72, 144, 289 and 578
+/// materials gave the same rates on 120 cases of `paper` but for one case lost at 36, and the
+/// scan's time grows with them (docs/solvers.md, "The joint scan's materials from
+/// a probe of the geometries").
+pub const MAX_OPERATIONS: f64 = 5e9;
 
 /// At most this many geometries (every `n`-th of the library, so that each family and amplitude
-/// is among them: 4,011 on `paper`) on which every material is scored to choose the materials of a scan that cannot pair them all:
-/// each material's best relative error there ranks it. On `paper` (289 of 4,168 materials
-/// paired) the original material of a validation case was among those chosen in 23 of 40 cases,
-/// against 10 of 40 when they were the materials closest to the look on a flat patch (the look
-/// taken as a plain BRDF: a material sharper than the look, which a rough geometry blurs,
-/// ranks far down there); every 20th, 40th or 80th geometry gave the same rates
-/// (docs/solvers.md, "The joint scan's materials from a probe of the geometries").
+/// is among them: 4,011 on `paper`) on which every material is scored to choose the materials
+/// of a scan that cannot pair them all: each material's best relative error there ranks it. On
+/// `paper` (289 of 4,168 materials paired) the original material of a validation case was
+/// among those chosen in 23 of 40 cases, against 10 of 40 when they were the materials closest
+/// to the look on a flat patch (the look taken as a plain BRDF: a material sharper than the
+/// look, which a rough geometry blurs, ranks far down there); every 20th, 40th or 80th
+/// geometry gave the same rates (docs/solvers.md, "The joint scan's materials from a probe of
+/// the geometries").
 pub const MATERIAL_PROBE: usize = 4096;
 
 /// Fewest materials the pair scan pairs with every geometry, whatever the budget.
