@@ -478,7 +478,7 @@ fn joint_search_on_a_budget_chooses_its_materials_on_a_probe_of_the_geometries()
         .unwrap()
         .len();
     let few = biscale::solve::joint::MIN_MATERIALS;
-    assert!(few < nm && ng <= biscale::solve::joint::MATERIAL_PROBE);
+    assert!(few < nm && ng <= biscale::solve::joint::MIN_PROBE);
     // Just enough for `few` materials with every geometry.
     let budget = (ng * few * (ks * ks + ks)) as f64;
     let mut first = 0;

@@ -129,6 +129,11 @@ pub const MAX_OPERATIONS: f64 = 5e9;
 /// the geometries").
 pub const MATERIAL_PROBE: usize = 4096;
 
+/// Fewest geometries of the probe, whatever the budget: a library of so many materials that the
+/// budget pays for fewer than [`MATERIAL_PROBE`] geometries with each is probed on fewer, down to
+/// this many (on `paper` the budget pays for 5,712).
+pub const MIN_PROBE: usize = 256;
+
 /// Fewest materials the pair scan pairs with every geometry, whatever the budget.
 pub const MIN_MATERIALS: usize = 4;
 
@@ -346,11 +351,14 @@ pub fn search(
         // The materials paired with every geometry: all of them when the budget allows, else
         // the `n_scan` that come closest to the look on a probe of MATERIAL_PROBE geometries
         // spread over the library (every material with each; a material's score is its best
-        // relative error there).
+        // relative error there). The probe keeps to the budget as well: a library of very many
+        // materials is probed on fewer geometries (at least MIN_PROBE).
         let materials = if n_scan >= mitems.len() {
             all_materials
         } else {
-            let stride = gitems.div_ceil(MATERIAL_PROBE).max(1);
+            let size = (max_operations / (mitems.len() as f64 * per_pair)).floor() as usize;
+            let size = size.clamp(MIN_PROBE, MATERIAL_PROBE);
+            let stride = gitems.div_ceil(size).max(1);
             let probe: Vec<usize> = (0..gitems).step_by(stride).collect();
             let (uq, ul) = material_terms(&all_materials);
             let best = probe
