@@ -440,6 +440,13 @@ impl ColumnElement for half::f16 {
     }
 }
 
+/// A byte of a column is a [`crate::uf8`] value (the only bytes a column holds).
+impl ColumnElement for u8 {
+    fn to_f32s(src: &[u8], dst: &mut [f32]) {
+        crate::uf8::decode_into(src, dst);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -498,7 +505,13 @@ mod tests {
                     .map(move |(t, p)| (l, dir_from_deg(t, p)))
             })
             .collect();
-        let got = Response::new(&lay, &mat, &pairs).apply(&col);
+        let resp = Response::new(&lay, &mat, &pairs);
+        let got = resp.apply(&col);
+        // The column stored in bytes (`uf8`) gives its decoded column's numbers exactly.
+        let bytes = crate::uf8::encode_all(&col);
+        let mut decoded = vec![0f32; bytes.len()];
+        crate::uf8::decode_into(&bytes, &mut decoded);
+        assert_eq!(resp.apply(&bytes), resp.apply(&decoded));
         let ex = ExactEvaluator::new(&hf, 3);
         let dp: Vec<DirPair> = pairs
             .iter()

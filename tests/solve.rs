@@ -102,6 +102,29 @@ fn geometry_solver_is_deterministic_sorted_and_reads_no_material_arrays() {
 }
 
 #[test]
+fn a_stored_column_responds_as_its_decoded_column() {
+    let lib = Library::open(&tiny_library()).unwrap();
+    let gamma = lib.binned_columns().unwrap();
+    let layout = lib.gamma_layout();
+    let mat = parse_material("ggx:alpha=0.2+lambert:albedo=0.3").unwrap();
+    let pairs: Vec<_> = (0..layout.lights.len())
+        .map(|l| {
+            (
+                l,
+                biscale::frame::dir_from_deg(20.0 + 7.0 * l as f64, 45.0 * l as f64),
+            )
+        })
+        .collect();
+    let resp = biscale::gamma::Response::new(&layout, &mat, &pairs);
+    for j in [0, lib.manifest.geometries / 2, lib.manifest.geometries - 1] {
+        let want = resp.apply(&gamma.column(j).unwrap());
+        assert_eq!(gamma.respond(&resp, j).unwrap(), want, "geometry {j}");
+    }
+    let e = gamma.respond(&resp, lib.manifest.geometries).unwrap_err();
+    assert!(e.to_string().contains("no column for geometry"), "{e}");
+}
+
+#[test]
 fn material_solver_recovers_the_material_of_a_library_combination() {
     let lib = Library::open(&tiny_library()).unwrap();
     let hf_spec = lib.geometry_items().unwrap()[4].spec.clone();

@@ -769,8 +769,8 @@ pub struct BinnedColumns {
 }
 
 impl BinnedColumns {
-    /// Column `j` (geometry `j`) in `f32`.
-    pub fn column(&self, j: usize) -> Result<Vec<f32>> {
+    /// Column `j` (geometry `j`) as stored.
+    fn stored(&self, j: usize) -> Result<StoredColumn<'_>> {
         let missing = || {
             Error::new(
                 self.file.path.display().to_string(),
@@ -778,18 +778,38 @@ impl BinnedColumns {
             )
         };
         let range = j * self.rows..(j + 1) * self.rows;
+        Ok(match self.file.header.dtype {
+            Dtype::UF8 => StoredColumn::Bytes(self.file.uf8s()?.get(range).ok_or_else(missing)?),
+            _ => StoredColumn::Half(self.file.f16s()?.get(range).ok_or_else(missing)?),
+        })
+    }
+
+    /// Column `j` (geometry `j`) in `f32`.
+    pub fn column(&self, j: usize) -> Result<Vec<f32>> {
+        use crate::gamma::ColumnElement;
         let mut out = vec![0f32; self.rows];
-        match self.file.header.dtype {
-            Dtype::UF8 => {
-                crate::uf8::decode_into(self.file.uf8s()?.get(range).ok_or_else(missing)?, &mut out)
-            }
-            _ => crate::gamma::ColumnElement::to_f32s(
-                self.file.f16s()?.get(range).ok_or_else(missing)?,
-                &mut out,
-            ),
+        match self.stored(j)? {
+            StoredColumn::Bytes(c) => u8::to_f32s(c, &mut out),
+            StoredColumn::Half(c) => f16::to_f32s(c, &mut out),
         }
         Ok(out)
     }
+
+    /// `fbar` of geometry `j` at `resp`'s pairs ([`crate::gamma::Response::apply`] on its
+    /// column), read from the stored column: only the row blocks the pairs use are converted,
+    /// not the whole column as [`Self::column`] would (the same numbers).
+    pub fn respond(&self, resp: &crate::gamma::Response, j: usize) -> Result<Vec<f64>> {
+        Ok(match self.stored(j)? {
+            StoredColumn::Bytes(c) => resp.apply(c),
+            StoredColumn::Half(c) => resp.apply(c),
+        })
+    }
+}
+
+/// A binned column as the library stores it.
+enum StoredColumn<'a> {
+    Bytes(&'a [u8]),
+    Half(&'a [f16]),
 }
 
 #[cfg(test)]

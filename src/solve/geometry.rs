@@ -64,7 +64,7 @@ impl ItemData {
     fn values(&self, j: usize, r: &Rotation) -> Result<Vec<f64>> {
         match (self, &r.response) {
             (ItemData::Lobes { lobes, pf }, _) => Ok(lobes.get(j)?.fbar(pf, &r.at)),
-            (ItemData::Binned(gamma), Some(resp)) => Ok(resp.apply(&gamma.column(j)?)),
+            (ItemData::Binned(gamma), Some(resp)) => gamma.respond(resp, j),
             (ItemData::Binned(gamma), None) => Err(crate::error::Error::new(
                 gamma.file.path.display().to_string(),
                 "internal: binned search without a material response",
@@ -285,7 +285,7 @@ pub fn solve_with(
                     let resp = Response::with_table(&layout, material, pf, &shared.pairs);
                     let b: Vec<Vec<f64>> = reps
                         .par_iter()
-                        .map(|&k| Ok(resp.apply(&gamma.column(k as usize)?)))
+                        .map(|&k| gamma.respond(&resp, k as usize))
                         .collect::<Result<_>>()?;
                     let e = search_errors_multi(shared, &targets, &b, xs, n, rescore, anyb);
                     Ok(Some(smallest(&e.concat(), depth)))
