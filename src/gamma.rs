@@ -378,9 +378,9 @@ impl Response {
         }
     }
 
-    /// `fbar` at every pair for one geometry column (`f16` or `f32`). The column's row blocks
-    /// that the pairs read (one per light and view node) are converted to `f32` once, then
-    /// each pair is up to four dot products over the normal nodes.
+    /// `fbar` at every pair for one geometry column (`f32`, `f16` or `uf8` bytes). The
+    /// column's row blocks that the pairs read (one per light and view node) are converted to
+    /// `f32` once, then each pair is up to four dot products over the normal nodes.
     pub fn apply<T: ColumnElement>(&self, col: &[T]) -> Vec<f64> {
         let nb = self.nb;
         // Where each row block's `f32` copy starts in `buf` (`usize::MAX`: not converted yet),
