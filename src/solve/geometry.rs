@@ -270,14 +270,16 @@ pub fn solve_with(
     let n = items.len();
     // The three rankings run side by side: each scan's serial parts (the selections, the
     // material's response) overlap the others' products.
+    // Each ranking's errors, rotation-major (entry `ri · n + j` is item `j` at rotation `ri`):
+    // exact for its best `depth` entries, elsewhere a bound above them (`search_errors_multi`).
     let (first, (binned, refit)) = rayon::join(
-        || search_errors_multi(shared, &targets, &a, xs, n, rescore, anyb),
+        || search_errors_multi(shared, &targets, &a, xs, n, rescore, depth, anyb).concat(),
         || {
             rayon::join(
                 // The second ranking: the representatives' binned columns with the material's
                 // response, the linear model the CX weights were fitted to (same (rotation,
                 // item) layout).
-                || -> Result<Option<Vec<usize>>> {
+                || -> Result<Option<Vec<f64>>> {
                     let (ItemData::Lobes { pf, .. }, true) = (&data, opt.binned_search) else {
                         return Ok(None);
                     };
@@ -287,28 +289,34 @@ pub fn solve_with(
                         .par_iter()
                         .map(|&k| gamma.respond(&resp, k as usize))
                         .collect::<Result<_>>()?;
-                    let e = search_errors_multi(shared, &targets, &b, xs, n, rescore, anyb);
-                    Ok(Some(smallest(&e.concat(), depth)))
+                    Ok(Some(
+                        search_errors_multi(shared, &targets, &b, xs, n, rescore, depth, anyb)
+                            .concat(),
+                    ))
                 },
                 // The third: the representatives' light-lobe values with the weights refitted
                 // to them.
                 || match (&data, xl) {
-                    (ItemData::Lobes { .. }, Some(xl)) => Some(smallest(
-                        &search_errors_multi(shared, &targets, &a, xl, n, rescore, anyb).concat(),
-                        depth,
-                    )),
+                    (ItemData::Lobes { .. }, Some(xl)) => Some(
+                        search_errors_multi(shared, &targets, &a, xl, n, rescore, depth, anyb)
+                            .concat(),
+                    ),
                     _ => None,
                 },
             )
         },
     );
-    // Stage 1's errors rotation-major: entry `ri · n + j` is item `j` at rotation `ri`.
-    let errs: Vec<f64> = first.concat();
-    let scored = |i: usize| (errs[i], i % n, i / n);
-    let rankings: Vec<Vec<usize>> = std::iter::once(smallest(&errs, depth))
-        .chain(binned?)
-        .chain(refit)
-        .collect();
+    let errors: Vec<Vec<f64>> = std::iter::once(first).chain(binned?).chain(refit).collect();
+    let rankings: Vec<Vec<usize>> = errors.iter().map(|e| smallest(e, depth)).collect();
+    // An entry's stage-1 error: the least of the rankings' that hold it among their best (every
+    // pooled entry is among some ranking's best).
+    let mut stage1 = vec![f64::INFINITY; n * rots.len()];
+    for (e, r) in errors.iter().zip(&rankings) {
+        for &i in r {
+            stage1[i] = stage1[i].min(e[i]);
+        }
+    }
+    let scored = |i: usize| (stage1[i], i % n, i / n);
     let refs: Vec<&[usize]> = rankings.iter().map(|r| r.as_slice()).collect();
     let order = interleave(&refs, depth);
     stats.items_searched = items.len() * rots.len();

@@ -173,8 +173,9 @@ pub struct Candidate {
     pub colour_shift: Option<usize>,
     /// Average RGB colour `lambda` of the candidate material with its shift.
     pub colour: [f64; 3],
-    /// Error from the compressed search (stage 1); at the best brightness in a geometry solve
-    /// with [`SolveOptions::any_brightness`].
+    /// Error from the compressed search (stage 1): in a geometry solve, the least of its
+    /// rankings' that hold the candidate among their best; at the best brightness with
+    /// [`SolveOptions::any_brightness`].
     pub search_error: f64,
     /// Error from the item's own library data (stage 2); at the best brightness in a geometry
     /// solve with [`SolveOptions::any_brightness`], whose candidates are in this order.
@@ -463,6 +464,7 @@ pub fn search_errors(
         x,
         items,
         rescore,
+        items,
         false,
     )
     .pop()
@@ -477,6 +479,17 @@ pub fn search_errors(
 /// target gets its clamped error for all; a library of at most `rescore × T` items gets the
 /// clamped error everywhere. With `any_brightness` each error is taken at the brightness that
 /// fits best ([`crate::sampling::scaled_rel_error`]): the terms are the same.
+///
+/// Only the best `keep` entries over all targets (and each target's best `rescore`) need be
+/// exact. For one target, when those are few ([`PRUNE_SHARE`]) and the Gram matrix has a
+/// factor, every item is first bounded from below by the factor's first band
+/// ([`gram_bounds`]); the items with the best bounds (half as many again) are scored, and any
+/// other only when its bound is under the `keep`-th best error found among them. Every other
+/// item holds its bound, which is above the errors of the best `keep` (and `rescore`): ranking
+/// the result gives the same best entries as scoring every item. (With several targets the
+/// selections over every entry cost more than the bounds save: every item is scored.)
+/// `keep = items × targets` scores every item.
+#[allow(clippy::too_many_arguments)]
 pub fn search_errors_multi(
     s: &Samples,
     ts: &[Vec<f64>],
@@ -484,6 +497,7 @@ pub fn search_errors_multi(
     x: &[f32],
     items: usize,
     rescore: usize,
+    keep: usize,
     any_brightness: bool,
 ) -> Vec<Vec<f64>> {
     use faer::Mat;
@@ -578,11 +592,10 @@ pub fn search_errors_multi(
     let bm = Mat::<f32>::from_fn(nt, c, |ti, k| {
         (0..np).map(|p| aw[(p, k)] * tws[ti][p]).sum::<f64>() as f32
     });
-    // One block's Gram scores, `[target][item in block]`.
-    let scan_block = |j0: usize| -> (usize, Vec<f64>) {
-        let n = SEARCH_BLOCK.min(items - j0);
-        // The block's weights, item-major: column-major `c × n`, read in place.
-        let xb = &x[j0 * c..(j0 + n) * c];
+    // The Gram scores of a block of items whose weights `xb` are column-major `c × n` (read in
+    // place for a run of the library, copied for a gathered set), `[target][item in block]`.
+    let score = |xb: &[f32]| -> Vec<f64> {
+        let n = xb.len() / c;
         let xm = faer::MatRef::from_column_major_slice(xb, c, n);
         // `R X` band by band, or `Q X` without a factor; the quadratic term is `|R x|²`, or
         // `xᵀ (Q x)`.
@@ -611,16 +624,71 @@ pub fn search_errors_multi(
                 out[ti * n + j] = rel(n2, lins[(ti, j)] as f64, quad);
             }
         }
-        (n, out)
+        out
     };
-    let starts: Vec<usize> = (0..items).step_by(SEARCH_BLOCK).collect();
     // Subnormal products (a small weight times a small cross term) are flushed: computed, they
     // made some scans 10× slower (`fastmath::without_subnormals`).
-    let blocks: Vec<(usize, Vec<f64>)> = starts
-        .par_iter()
-        .map(|&j0| crate::fastmath::without_subnormals(|| scan_block(j0)))
-        .collect();
-    let mut errors = join(nt, blocks);
+    let scored = |ids: &[usize]| -> Vec<Vec<f64>> {
+        let blocks: Vec<(usize, Vec<f64>)> = ids
+            .par_chunks(SEARCH_BLOCK)
+            .map(|chunk| {
+                let mut xb = Vec::with_capacity(chunk.len() * c);
+                for &j in chunk {
+                    xb.extend_from_slice(&x[j * c..(j + 1) * c]);
+                }
+                let e = crate::fastmath::without_subnormals(|| score(&xb));
+                (chunk.len(), e)
+            })
+            .collect();
+        join(nt, blocks)
+    };
+    let bounds = match (&factor, n2s.as_slice()) {
+        (Some(r), &[n2]) if !any_brightness && prunes(items, keep, rescore) => {
+            gram_bounds(r.as_ref(), &bm, n2, x, items)
+        }
+        _ => None,
+    };
+    let mut errors = match bounds {
+        // Every item's bound from the factor's first band; the entries with the best bounds
+        // give a threshold, and only the other items whose bound is under it are scored.
+        Some(mut errors) => {
+            let put = |ids: &[usize], errors: &mut [f64]| {
+                for (&j, v) in ids.iter().zip(scored(ids).remove(0)) {
+                    errors[j] = v;
+                }
+            };
+            let mut ids = smallest(&errors, keep.max(rescore).saturating_mul(3) / 2);
+            ids.sort_unstable();
+            put(&ids, &mut errors);
+            // The `keep`-th best error among the scored items is at least the `keep`-th best
+            // of all (the `rescore`-th likewise): an item whose bound is over it is not among
+            // the best.
+            let limit = kth_smallest(ids.iter().map(|&j| errors[j]).collect(), keep.max(rescore))
+                .powi(2)
+                + BOUND_MARGIN;
+            let mut done = vec![false; items];
+            for &j in &ids {
+                done[j] = true;
+            }
+            let rest: Vec<usize> = (0..items)
+                .filter(|&j| !done[j] && errors[j] * errors[j] <= limit)
+                .collect();
+            put(&rest, &mut errors);
+            vec![errors]
+        }
+        None => {
+            let starts: Vec<usize> = (0..items).step_by(SEARCH_BLOCK).collect();
+            let blocks: Vec<(usize, Vec<f64>)> = starts
+                .par_iter()
+                .map(|&j0| {
+                    let n = SEARCH_BLOCK.min(items - j0);
+                    let xb = &x[j0 * c..(j0 + n) * c];
+                    (n, crate::fastmath::without_subnormals(|| score(xb)))
+                })
+                .collect();
+            join(nt, blocks)
+        }
+    };
     let mut best: Vec<usize> = errors.iter().flat_map(|e| smallest(e, rescore)).collect();
     best.sort_unstable();
     best.dedup();
@@ -631,6 +699,88 @@ pub fn search_errors_multi(
         }
     }
     errors
+}
+
+/// Whether a scan of `items` items for one target, of which the best `keep` (and the best
+/// `rescore`) must be exact, is worth bounding first: when those are at most a
+/// [`PRUNE_SHARE`]th of the items.
+fn prunes(items: usize, keep: usize, rescore: usize) -> bool {
+    keep.max(rescore).saturating_mul(PRUNE_SHARE) <= items
+}
+
+/// [`search_errors_multi`] bounds every item before scoring it when the items it must score
+/// exactly are at most this share of all (one in four).
+pub const PRUNE_SHARE: usize = 4;
+
+/// Added to the squared threshold (relative) of [`search_errors_multi`]'s bounds: the bound and
+/// the score sum in different orders, in `f32`, which round at about 1e-7 of the magnitudes
+/// summed, so an item is passed over only when its bound is clearly over the threshold.
+pub const BOUND_MARGIN: f64 = 1e-4;
+
+/// Lower bounds on every item's relative Gram error. With `R` the factor (`Rᵀ R = Q`) and `z` the
+/// solution of `Rᵀ z = b` (`b = A_wᵀ t_w`, the row `bm`), the squared error
+/// `|t_w|² − 2 bᵀ x + |R x|²` is `|R x − z|² + |t_w|² − |z|²`: a sum of squares, one per row of
+/// `R`, plus a constant. The first [`GRAM_BAND`] rows — the representatives CX picked first,
+/// which carry most of the energy — cost about a quarter of `|R x|²` and bound the rest from
+/// below. `None` when `z` is not finite.
+fn gram_bounds(
+    r: faer::MatRef<'_, f32>,
+    bm: &faer::Mat<f32>,
+    n2: f64,
+    x: &[f32],
+    items: usize,
+) -> Option<Vec<f64>> {
+    use rayon::prelude::*;
+    let c = r.nrows();
+    let h = GRAM_BAND.min(c);
+    // Forward substitution in `f64` on the `f32` factor the scores use, so that the identity
+    // holds for it; `R x`'s rows are the reconstruction's coordinates in an orthonormal basis of
+    // the representatives' span and `z` the target's projection's, so `|z|² ≤ |t_w|²`.
+    let mut z = vec![0.0f64; c];
+    for i in 0..c {
+        let v: f64 = (0..i).map(|k| r[(k, i)] as f64 * z[k]).sum();
+        z[i] = (bm[(0, i)] as f64 - v) / r[(i, i)] as f64;
+    }
+    if !(n2 > 0.0) || z.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    let rest = n2 - z.iter().map(|v| v * v).sum::<f64>();
+    let z32: Vec<f32> = z[..h].iter().map(|&v| v as f32).collect();
+    let band = r.subrows(0, h);
+    let starts: Vec<usize> = (0..items).step_by(SEARCH_BLOCK).collect();
+    let blocks: Vec<Vec<f64>> = starts
+        .par_iter()
+        .map(|&j0| {
+            let n = SEARCH_BLOCK.min(items - j0);
+            let xm = faer::MatRef::from_column_major_slice(&x[j0 * c..(j0 + n) * c], c, n);
+            let mut y = faer::Mat::<f32>::zeros(h, n);
+            crate::fastmath::without_subnormals(|| {
+                faer::linalg::matmul::matmul(
+                    y.as_mut(),
+                    faer::Accum::Replace,
+                    band,
+                    xm,
+                    1.0f32,
+                    faer::Par::Seq,
+                )
+            });
+            (0..n)
+                .map(|j| {
+                    let part = crate::fastmath::dist2_32(y.col_as_slice(j), &z32);
+                    ((part + rest).max(0.0) / n2).sqrt()
+                })
+                .collect()
+        })
+        .collect();
+    Some(blocks.concat())
+}
+
+/// The `k`-th smallest of `values` (from 1), infinite when there are fewer.
+fn kth_smallest(mut values: Vec<f64>, k: usize) -> f64 {
+    if k == 0 || k > values.len() {
+        return f64::INFINITY;
+    }
+    *values.select_nth_unstable_by(k - 1, f64::total_cmp).1
 }
 
 /// The upper Cholesky factor `R` (`Q = Rᵀ R`, in `f32`) of a search's Gram matrix `q`, with
@@ -950,7 +1100,7 @@ mod tests {
         let (s, ts, a, x) = random_search(5, 16, 3, 4, items);
         // Small budget: Gram bounds, each target's best rescored, rescored items exact for all.
         let rescore = 100;
-        let multi = search_errors_multi(&s, &ts, &a, &x, items, rescore, false);
+        let multi = search_errors_multi(&s, &ts, &a, &x, items, rescore, items * 3, false);
         assert_eq!(multi.len(), ts.len());
         for (t, m) in ts.iter().zip(&multi) {
             let one = search_errors(&s, t, &a, &x, items, rescore);
@@ -964,11 +1114,46 @@ mod tests {
             }
         }
         // A budget covering the library: clamped everywhere, as one search of each.
-        let all = search_errors_multi(&s, &ts, &a, &x, 200, 100, false);
+        let all = search_errors_multi(&s, &ts, &a, &x, 200, 100, 600, false);
         for (t, m) in ts.iter().zip(&all) {
             let one = search_errors(&s, t, &a, &x, 200, 200);
             assert!(m.iter().zip(&one).all(|(p, q)| (p - q).abs() < 1e-12));
         }
+    }
+
+    #[test]
+    fn a_bounded_scan_ranks_its_best_entries_as_a_full_scan_does() {
+        // 40 representatives: the bounds read the first 16 rows of the factor, the scores all.
+        let items = 3 * SEARCH_BLOCK + 7;
+        let (keep, rescore) = (300, 60);
+        assert!(prunes(items, keep, rescore));
+        let (s, ts, a, x) = random_search(11, 64, 3, 40, items);
+        let one = std::slice::from_ref(&ts[0]);
+        let f = search_errors_multi(&s, one, &a, &x, items, rescore, items, false).remove(0);
+        let p = search_errors_multi(&s, one, &a, &x, items, rescore, keep, false).remove(0);
+        // The same best items, with the same errors (up to the f32 products' order).
+        let best = smallest(&f, keep);
+        assert_eq!(smallest(&p, keep), best);
+        assert_eq!(smallest(&p, rescore), smallest(&f, rescore));
+        for &j in &best {
+            assert!((p[j] - f[j]).abs() < 1e-6, "item {j}: {} vs {}", p[j], f[j]);
+        }
+        // Every other item holds its error or a bound below it, above the best; most are
+        // bounds (the items passed over).
+        let worst = best.iter().map(|&j| f[j]).fold(0.0, f64::max);
+        let mut bounded = 0;
+        for (j, (&pv, &fv)) in p.iter().zip(&f).enumerate() {
+            assert!(pv <= fv + 1e-6, "item {j}: bound {pv} over error {fv}");
+            if !best.contains(&j) {
+                assert!(pv > worst, "item {j}: {pv} not above the best ({worst})");
+            }
+            bounded += usize::from(pv < fv - 1e-6);
+        }
+        assert!(bounded > items / 2, "{bounded} bounds");
+        // Several targets: every item scored, whatever `keep`.
+        let full = search_errors_multi(&s, &ts, &a, &x, items, rescore, 3 * items, false);
+        let part = search_errors_multi(&s, &ts, &a, &x, items, rescore, keep, false);
+        assert_eq!(full, part);
     }
 
     #[test]
@@ -989,11 +1174,28 @@ mod tests {
         // at an eighth the scale stops at a quarter, twice the target (error 1).
         for (f, want) in [(1.0 / 3.0, 0.0), (1.0 / 8.0, 1.0)] {
             let t = scaled(f);
-            let one =
-                search_errors_multi(&s, std::slice::from_ref(&t), &a, &x, items, items, false)
-                    .remove(0);
-            let any = search_errors_multi(&s, std::slice::from_ref(&t), &a, &x, items, items, true)
-                .remove(0);
+            let one = search_errors_multi(
+                &s,
+                std::slice::from_ref(&t),
+                &a,
+                &x,
+                items,
+                items,
+                items,
+                false,
+            )
+            .remove(0);
+            let any = search_errors_multi(
+                &s,
+                std::slice::from_ref(&t),
+                &a,
+                &x,
+                items,
+                items,
+                items,
+                true,
+            )
+            .remove(0);
             assert!((any[j] - want).abs() < 1e-6, "{f}: {}", any[j]);
             assert!((one[j] - (1.0 / f - 1.0)).abs() < 1e-6, "{f}: {}", one[j]);
             // Brightness 1 is one of the scales tried: never worse (up to the f32 sums'
@@ -1002,7 +1204,7 @@ mod tests {
         }
         // Through the Gram bound too (a small rescore): item j ranks first.
         let t = scaled(0.5);
-        let any = search_errors_multi(&s, &[t], &a, &x, items, 10, true).remove(0);
+        let any = search_errors_multi(&s, &[t], &a, &x, items, 10, items, true).remove(0);
         assert_eq!(smallest(&any, 1), vec![j]);
     }
 
