@@ -666,6 +666,8 @@ pub fn search_errors_multi(
             let limit = kth_smallest(ids.iter().map(|&j| errors[j]).collect(), keep.max(rescore))
                 .powi(2)
                 + BOUND_MARGIN;
+            // (Not a number only from weights that are not: then every item is scored.)
+            let limit = if limit.is_nan() { f64::INFINITY } else { limit };
             let mut done = vec![false; items];
             for &j in &ids {
                 done[j] = true;
