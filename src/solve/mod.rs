@@ -1176,28 +1176,12 @@ mod tests {
         // at an eighth the scale stops at a quarter, twice the target (error 1).
         for (f, want) in [(1.0 / 3.0, 0.0), (1.0 / 8.0, 1.0)] {
             let t = scaled(f);
-            let one = search_errors_multi(
-                &s,
-                std::slice::from_ref(&t),
-                &a,
-                &x,
-                items,
-                items,
-                items,
-                false,
-            )
-            .remove(0);
-            let any = search_errors_multi(
-                &s,
-                std::slice::from_ref(&t),
-                &a,
-                &x,
-                items,
-                items,
-                items,
-                true,
-            )
-            .remove(0);
+            // Every item scored and rescored, at brightness 1 or at the best.
+            let all = |anyb| {
+                let ts = std::slice::from_ref(&t);
+                search_errors_multi(&s, ts, &a, &x, items, items, items, anyb).remove(0)
+            };
+            let (one, any) = (all(false), all(true));
             assert!((any[j] - want).abs() < 1e-6, "{f}: {}", any[j]);
             assert!((one[j] - (1.0 / f - 1.0)).abs() < 1e-6, "{f}: {}", one[j]);
             // Brightness 1 is one of the scales tried: never worse (up to the f32 sums'
