@@ -346,6 +346,95 @@ pub struct LightPairs {
     /// The pair visited after each pair in `order` (none after the last): while one pair's
     /// lobes are assembled, the next one's blocks are prefetched.
     next: Vec<Option<usize>>,
+    /// Where the pairs read the same rows of a record many times (a solve's samples: each
+    /// (light, view node) row is read by two or more pairs), the rows they read, each converted
+    /// once per record ([`RowPlan`]); `None` where most rows are read once (a coarse pass).
+    plan: Option<RowPlan>,
+}
+
+/// The distinct rows of a record that a set of pairs reads, and which of them each pair's view
+/// nodes read: a half-precision record's rows are then converted to `f32` (and its lit rows
+/// multiplied by their areas) once per record rather than once per pair and node, and the
+/// pairs add up the converted rows in the same order as before, so every value is the same
+/// bit for bit.
+#[derive(Debug, Clone)]
+struct RowPlan {
+    /// The distinct (light, view node) lit rows, in the record's order.
+    lit: Vec<(usize, usize)>,
+    /// The distinct view nodes' seen rows, in the record's order.
+    seen: Vec<usize>,
+    /// Per pair, per view node of its [`Node`]: its lit row's and its seen row's place in
+    /// `lit` and `seen` (meaningless where the node's weight is 0).
+    slots: Vec<[(u32, u32); 4]>,
+}
+
+impl RowPlan {
+    /// The plan of pairs placed at `nodes`, when the rows are read at least
+    /// [`PLAN_REUSE`] times on average.
+    fn new(nodes: &[Option<Node>]) -> Option<Self> {
+        use std::collections::BTreeMap;
+        let (mut lit, mut seen) = (BTreeMap::new(), BTreeMap::new());
+        let mut reads = 0usize;
+        for n in nodes.iter().flatten() {
+            for &(b, vb) in &n.views {
+                if vb != 0.0 {
+                    lit.insert((n.light, b), 0u32);
+                    seen.insert(b, 0u32);
+                    reads += 2;
+                }
+            }
+        }
+        let rows = lit.len() + seen.len();
+        if rows == 0 || (reads as f64) < PLAN_REUSE * rows as f64 {
+            return None;
+        }
+        for (i, v) in lit.values_mut().enumerate() {
+            *v = i as u32;
+        }
+        for (i, v) in seen.values_mut().enumerate() {
+            *v = i as u32;
+        }
+        let slots = nodes
+            .iter()
+            .map(|n| match n {
+                Some(n) => n.views.map(|(b, vb)| {
+                    if vb == 0.0 {
+                        (0, 0)
+                    } else {
+                        (lit[&(n.light, b)], seen[&b])
+                    }
+                }),
+                None => [(0, 0); 4],
+            })
+            .collect();
+        Some(RowPlan {
+            lit: lit.into_keys().collect(),
+            seen: seen.into_keys().collect(),
+            slots,
+        })
+    }
+}
+
+/// The average number of reads per row at which pairs convert each row once ([`RowPlan`]):
+/// converting a row costs about what reading it in place does, and the buffer of converted
+/// rows must be written and read again.
+const PLAN_REUSE: f64 = 1.5;
+
+/// A record's rows converted once for a [`RowPlan`] (per thread, reused from record to
+/// record: a record's rows take a few hundred kilobytes).
+#[derive(Default)]
+struct Rows {
+    /// `plan.lit`'s rows, `clusters × STRIDE` each, multiplied by their areas.
+    lit: Vec<f32>,
+    /// Their planar clusters' entries in the macro frame (`clusters × STRIDE` per row, empty
+    /// for a record without planar clusters).
+    ent: Vec<f32>,
+    /// `plan.seen`'s rows, `clusters × 3` each.
+    seen: Vec<f32>,
+}
+
+thread_local! {
+    static ROWS: std::cell::RefCell<Rows> = std::cell::RefCell::new(Rows::default());
 }
 
 impl LightPairs {
@@ -376,11 +465,13 @@ impl LightPairs {
         for w in order.windows(2) {
             next[w[0]] = Some(w[1]);
         }
+        let plan = RowPlan::new(&nodes);
         LightPairs {
             pairs,
             nodes,
             order,
             next,
+            plan,
         }
     }
 
@@ -420,24 +511,68 @@ impl LightLobes<'_> {
     /// `fbar` of `mat` at `at`'s pairs (found with this geometry's layout); equal to
     /// [`crate::fast::fbar`] at the same pairs.
     pub fn fbar(&self, mat: &Prefiltered, at: &LightPairs) -> Vec<f64> {
-        crate::fast::fbar_by(
-            mat,
-            &at.pairs,
-            Some(&at.order),
-            self.clusters,
-            |i, p, out| self.lobes_of(at, i, p, out),
-        )
+        self.with_rows(at, |rows| {
+            crate::fast::fbar_by(
+                mat,
+                &at.pairs,
+                Some(&at.order),
+                self.clusters,
+                |i, p, out| self.lobes_of(at, rows, i, p, out),
+            )
+        })
     }
 
-    /// The lobes at `at`'s pair `i`.
+    /// `f` with this record's rows converted for `at`'s [`RowPlan`] (`None`: `at` has none,
+    /// the record is `f32`, or this thread's buffer is in use).
+    fn with_rows<T>(&self, at: &LightPairs, f: impl FnOnce(Option<&Rows>) -> T) -> T {
+        let (
+            Some(plan),
+            Moments::Half {
+                body,
+                frames,
+                packed,
+            },
+        ) = (&at.plan, &self.moments)
+        else {
+            return f(None);
+        };
+        ROWS.with(|cell| {
+            let mut rows = cell.try_borrow_mut().ok();
+            if let Some(r) = rows.as_deref_mut() {
+                self.convert_rows(body, frames, packed.as_deref(), plan, r);
+            }
+            f(rows.as_deref())
+        })
+    }
+
+    /// The lobes at `at`'s pair `i` (from `rows` when given: `at`'s plan converted).
     #[inline]
-    fn lobes_of(&self, at: &LightPairs, i: usize, p: &DirPair, out: &mut Vec<(f64, Vmf)>) {
-        if let Some(Some(n)) = at.next[i].map(|j| &at.nodes[j]) {
-            self.prefetch(n);
-        }
-        match &at.nodes[i] {
-            Some(n) => self.lobes_at(n, p.wi, p.wo, out),
-            None => out.clear(),
+    fn lobes_of(
+        &self,
+        at: &LightPairs,
+        rows: Option<&Rows>,
+        i: usize,
+        p: &DirPair,
+        out: &mut Vec<(f64, Vmf)>,
+    ) {
+        let Some(n) = &at.nodes[i] else {
+            out.clear();
+            return;
+        };
+        match (rows, &at.plan, &self.moments) {
+            (Some(rows), Some(plan), Moments::Half { frames, .. }) => {
+                let src = Source::Rows {
+                    rows,
+                    slots: &plan.slots[i],
+                };
+                self.lobes_half(frames, src, n, p.wi, p.wo, out)
+            }
+            _ => {
+                if let Some(Some(n)) = at.next[i].map(|j| &at.nodes[j]) {
+                    self.prefetch(n);
+                }
+                self.lobes_at(n, p.wi, p.wo, out)
+            }
         }
     }
 
@@ -479,8 +614,10 @@ impl LightLobes<'_> {
     /// The lobes at `at`'s pairs, for evaluating many materials there; equal to
     /// [`crate::fast::FixedLobes::new`] at the same pairs.
     pub fn fixed(&self, at: &LightPairs) -> crate::fast::FixedLobes {
-        crate::fast::FixedLobes::by(&at.pairs, Some(&at.order), self.clusters, |i, p, out| {
-            self.lobes_of(at, i, p, out)
+        self.with_rows(at, |rows| {
+            crate::fast::FixedLobes::by(&at.pairs, Some(&at.order), self.clusters, |i, p, out| {
+                self.lobes_of(at, rows, i, p, out)
+            })
         })
     }
 
@@ -492,7 +629,13 @@ impl LightLobes<'_> {
                 body,
                 frames,
                 packed,
-            } => self.lobes_half(body, frames, packed.as_deref(), n, wi, wo, out),
+            } => {
+                let src = Source::InPlace {
+                    body,
+                    packed: packed.as_deref(),
+                };
+                self.lobes_half(frames, src, n, wi, wo, out)
+            }
         }
     }
 
@@ -588,21 +731,19 @@ impl LightLobes<'_> {
     }
 
     /// [`Self::lobes_at`] from a half-precision record: each node's block is converted to
-    /// `f32` in one pass (8 numbers per instruction with F16C), the moments are interpolated in
-    /// each cluster's frame (the decoding is linear once multiplied by the area) and turned to
-    /// the macro frame once per cluster.
-    #[allow(clippy::too_many_arguments)]
+    /// `f32` in one pass (8 numbers per instruction with F16C; [`Self::lit_row`]) or taken
+    /// converted from `src`'s rows, the moments are interpolated in each cluster's frame (the
+    /// decoding is linear once multiplied by the area) and turned to the macro frame once per
+    /// cluster.
     fn lobes_half(
         &self,
-        body: &[f16],
         frames: &[Frame],
-        packed: Option<&lobepack::Index>,
+        src: Source<'_>,
         n: &Node,
         wi: Vec3,
         wo: Vec3,
         out: &mut Vec<(f64, Vmf)>,
     ) {
-        use half::slice::HalfFloatSliceExt;
         let (l, wb) = (n.light, &n.views);
         let k = self.clusters;
         let (ns, nl) = (k * 3, k * STRIDE);
@@ -640,40 +781,31 @@ impl LightLobes<'_> {
             if vb == 0.0 {
                 continue;
             }
-            match packed {
-                None => {
-                    let o = self.lit_at(l, b);
-                    body[o..o + nl].convert_to_f32_slice(conv);
-                }
-                Some(ix) => ix.fill(body, ix.shape().lit_row(l, b), conv),
-            }
-            if planar {
-                for c in (0..k).filter(|&c| self.planar[c]) {
-                    let g = frames[c].planar_global(conv[c * STRIDE] as f64);
-                    for (x, y) in ent[(i * k + c) * STRIDE..][..STRIDE].iter_mut().zip(g) {
-                        *x = y as f32;
+            // The node's lit entries multiplied by their areas (exact enough in f32: 2⁻²⁴
+            // against f16's 2⁻¹¹), which add up as the f32 records' do, in one flat loop; then
+            // its seen entries.
+            let (lit, seen_row): (&[f32], &[f32]) = match src {
+                Source::InPlace { body, packed } => {
+                    let ent = planar.then(|| &mut ent[i * nl..(i + 1) * nl]);
+                    self.lit_row(body, frames, packed, l, b, conv, ent);
+                    for (a, &e) in acc.iter_mut().zip(conv.iter()) {
+                        *a += vb * e as f64;
                     }
+                    self.seen_row(body, packed, b, &mut conv[..ns]);
+                    (&[], &conv[..ns])
                 }
-            }
-            // Multiplied by their areas (exact enough in f32: 2⁻²⁴ against f16's 2⁻¹¹), the
-            // entries add up as the f32 records' do, in one flat loop.
-            for e in conv.chunks_exact_mut(STRIDE) {
-                let a = e[0];
-                for x in &mut e[1..] {
-                    *x *= a;
+                Source::Rows { rows, slots } => {
+                    let (li, si) = (slots[i].0 as usize, slots[i].1 as usize);
+                    if planar {
+                        ent[i * nl..(i + 1) * nl].copy_from_slice(&rows.ent[li * nl..][..nl]);
+                    }
+                    (&rows.lit[li * nl..][..nl], &rows.seen[si * ns..][..ns])
                 }
-            }
-            for (a, &e) in acc.iter_mut().zip(conv.iter()) {
+            };
+            for (a, &e) in acc.iter_mut().zip(lit) {
                 *a += vb * e as f64;
             }
-            match packed {
-                None => {
-                    let s = self.seen_at(b);
-                    body[s..s + ns].convert_to_f32_slice(&mut conv[..ns]);
-                }
-                Some(ix) => ix.fill(body, ix.shape().seen_row(b), &mut conv[..ns]),
-            }
-            for (x, &y) in seen.iter_mut().zip(conv[..ns].iter()) {
+            for (x, &y) in seen.iter_mut().zip(seen_row) {
                 *x += vb * y as f64;
             }
         }
@@ -703,6 +835,99 @@ impl LightLobes<'_> {
             out,
         );
     }
+
+    /// A half-precision record's lit row at light `l` and view node `b` in `conv`
+    /// (`clusters × STRIDE`), each cluster's entries after the first multiplied by its first
+    /// (its area); with `ent`, the planar clusters' entries in the macro frame there.
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn lit_row(
+        &self,
+        body: &[f16],
+        frames: &[Frame],
+        packed: Option<&lobepack::Index>,
+        l: usize,
+        b: usize,
+        conv: &mut [f32],
+        ent: Option<&mut [f32]>,
+    ) {
+        use half::slice::HalfFloatSliceExt;
+        match packed {
+            None => {
+                let o = self.lit_at(l, b);
+                body[o..o + conv.len()].convert_to_f32_slice(conv);
+            }
+            Some(ix) => ix.fill(body, ix.shape().lit_row(l, b), conv),
+        }
+        if let Some(ent) = ent {
+            for c in (0..self.clusters).filter(|&c| self.planar[c]) {
+                let g = frames[c].planar_global(conv[c * STRIDE] as f64);
+                for (x, y) in ent[c * STRIDE..][..STRIDE].iter_mut().zip(g) {
+                    *x = y as f32;
+                }
+            }
+        }
+        for e in conv.chunks_exact_mut(STRIDE) {
+            let a = e[0];
+            for x in &mut e[1..] {
+                *x *= a;
+            }
+        }
+    }
+
+    /// A half-precision record's seen row at view node `b` in `out` (`clusters × 3`).
+    #[inline]
+    fn seen_row(&self, body: &[f16], packed: Option<&lobepack::Index>, b: usize, out: &mut [f32]) {
+        use half::slice::HalfFloatSliceExt;
+        match packed {
+            None => {
+                let s = self.seen_at(b);
+                body[s..s + out.len()].convert_to_f32_slice(out);
+            }
+            Some(ix) => ix.fill(body, ix.shape().seen_row(b), out),
+        }
+    }
+
+    /// Every row of `plan` of a half-precision record converted into `rows`, as
+    /// [`Self::lobes_half`] converts each where it reads it.
+    fn convert_rows(
+        &self,
+        body: &[f16],
+        frames: &[Frame],
+        packed: Option<&lobepack::Index>,
+        plan: &RowPlan,
+        rows: &mut Rows,
+    ) {
+        let k = self.clusters;
+        let (ns, nl) = (k * 3, k * STRIDE);
+        let planar = self.planar.iter().any(|&p| p);
+        rows.lit.resize(plan.lit.len() * nl, 0.0);
+        rows.seen.resize(plan.seen.len() * ns, 0.0);
+        rows.ent
+            .resize(if planar { plan.lit.len() * nl } else { 0 }, 0.0);
+        for (i, &(l, b)) in plan.lit.iter().enumerate() {
+            let ent = planar.then(|| &mut rows.ent[i * nl..(i + 1) * nl]);
+            let conv = &mut rows.lit[i * nl..(i + 1) * nl];
+            self.lit_row(body, frames, packed, l, b, conv, ent);
+        }
+        for (i, &b) in plan.seen.iter().enumerate() {
+            self.seen_row(body, packed, b, &mut rows.seen[i * ns..(i + 1) * ns]);
+        }
+    }
+}
+
+/// Where [`LightLobes::lobes_half`] takes a node's rows from: the record, or its rows
+/// converted once ([`RowPlan`]) with the pair's places in them.
+#[derive(Clone, Copy)]
+enum Source<'r> {
+    InPlace {
+        body: &'r [f16],
+        packed: Option<&'r lobepack::Index>,
+    },
+    Rows {
+        rows: &'r Rows,
+        slots: &'r [(u32, u32); 4],
+    },
 }
 
 /// Clusters a half-precision record may have (the libraries' profiles allow up to 64).
@@ -848,6 +1073,20 @@ mod tests {
         }
     }
 
+    /// `spec`'s record (16 clusters, 1024 rays per view node) at `lay`, its half-precision
+    /// form, and that form's header and moments.
+    fn built_and_half<'a>(
+        lay: &'a GammaLayout,
+        spec: &str,
+    ) -> (LightLobes<'a>, LightLobes<'a>, (Vec<f32>, Vec<f16>)) {
+        let hf = parse_generator(spec).unwrap().build().unwrap();
+        let ll = LightLobes::build(lay, &hf, 1024, 16);
+        let (head, body) =
+            crate::lobecodec::encode(ll.record().unwrap(), 16, lay.views.len()).unwrap();
+        let half = LightLobes::from_half(lay, 16, &head, Cow::Owned(body.clone()), "x").unwrap();
+        (ll, half, (head, body))
+    }
+
     #[test]
     fn snapped_pairs_are_read_at_their_nearest_view_node() {
         // A planar-walled geometry and a curved one, in f32 and in half precision: a pair
@@ -881,16 +1120,46 @@ mod tests {
             "vgroove:n=48,period=16,depth=4",
             "bumps:n=48,count=6,radius=8,height=3,seed=2",
         ] {
-            let hf = parse_generator(spec).unwrap().build().unwrap();
-            let ll = LightLobes::build(&lay, &hf, 1024, 16);
-            let (head, body) =
-                crate::lobecodec::encode(ll.record().unwrap(), 16, lay.views.len()).unwrap();
-            let half = LightLobes::from_half(&lay, 16, &head, Cow::Owned(body), "x").unwrap();
+            let (ll, half, _) = built_and_half(&lay, spec);
             for r in [&ll, &half] {
                 let (a, b) = (r.fbar(&pf, &snapped), r.fbar(&pf, &interpolated));
                 let rel = crate::bench::relative_rms(&a, &b);
                 assert!(rel < 1e-9, "{spec}: snapped against interpolated {rel}");
                 assert_eq!(r.fbar(&pf, &below), vec![0.0]);
+            }
+        }
+    }
+
+    #[test]
+    fn rows_converted_once_give_the_same_bits_as_rows_read_in_place() {
+        // Many pairs per light (rows read several times: a plan) and one pair per light (no
+        // plan); half-precision and packed records of planar and curved clusters.
+        let lay = GammaLayout::new(10, 16, 16);
+        let many = LightPairs::new(&lay, spread_pairs(&lay, 60, 85.0, 7.0));
+        let plan = many.plan.as_ref().expect("rows read many times");
+        let reads: usize = many.nodes.iter().flatten().map(|n| n.views.len()).sum();
+        assert!(plan.lit.len() < reads);
+        let one = LightPairs::new(&lay, many.pairs[..1].to_vec());
+        assert!(one.plan.is_none(), "a pair reads each of its rows once");
+        let pf = Prefiltered::build(
+            &parse_material("ggx:alpha=0.05,f0=0.8+lambert:albedo=0.1").unwrap(),
+            &PrefilterConfig::default(),
+        );
+        let shape = pack_shape(&lay, 16);
+        for spec in [
+            "vgroove:n=48,period=16,depth=4",
+            "bumps:n=48,count=6,radius=8,height=3,seed=2",
+        ] {
+            let (_, half, (head, body)) = built_and_half(&lay, spec);
+            let words = lobepack::pack(&body, &shape).unwrap();
+            let packed = LightLobes::from_packed(&lay, 16, &head, Cow::Owned(words), "x").unwrap();
+            for r in [&half, &packed] {
+                // In place, pair by pair, against the plan's converted rows.
+                let in_place = crate::fast::fbar(r, &pf, &many.pairs);
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&r.fbar(&pf, &many)), bits(&in_place), "{spec}");
+                assert_eq!(bits(&r.fixed(&many).fbar(&pf)), bits(&in_place), "{spec}");
+                assert!(in_place.iter().any(|&x| x > 0.0));
             }
         }
     }
