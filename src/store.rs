@@ -677,6 +677,43 @@ impl ArrayFile {
         });
     }
 
+    /// Whether every page of the data byte ranges `(start, len)` is in memory (`mincore` on the
+    /// map): reading them then waits for no disk. `false` where the system cannot tell; ranges
+    /// past the data and empty ones count as in memory.
+    pub fn resident(&self, ranges: &[(usize, usize)]) -> bool {
+        // SAFETY: `sysconf` only reads its argument.
+        let page = match unsafe { libc::sysconf(libc::_SC_PAGESIZE) } {
+            p if p > 0 => p as usize,
+            _ => return false,
+        };
+        let n = self.header.data_bytes();
+        let base = self.map.as_ptr() as usize;
+        let mut pages = Vec::new();
+        for &(start, len) in ranges {
+            if start >= n || len == 0 {
+                continue;
+            }
+            // The map's byte range of the data range, widened to whole pages (the map starts
+            // at a page boundary, and its last page is mapped whole).
+            let from = (self.offset + start) / page;
+            let to = (self.offset + start + len.min(n - start)).div_ceil(page);
+            pages.resize(to - from, 0u8);
+            // SAFETY: pages `from..to` of the map lie within it (its last page is mapped whole);
+            // `mincore` writes one byte per page into `pages`, which holds that many.
+            let rc = unsafe {
+                libc::mincore(
+                    (base + from * page) as *mut libc::c_void,
+                    (to - from) * page,
+                    pages.as_mut_ptr(),
+                )
+            };
+            if rc != 0 || pages.iter().any(|p| p & 1 == 0) {
+                return false;
+            }
+        }
+        true
+    }
+
     /// Copy data bytes `start..start + buf.len()` into `buf` with a positioned read instead of
     /// through the map. For streaming passes over arrays larger than memory: pages read through
     /// the map stay in this process's resident set (a randomized SVD over the 14 GB binned
@@ -765,14 +802,12 @@ mod tests {
         assert_eq!(f.f32s().unwrap(), &v[..]);
         assert_eq!(f.offset % ALIGN, 0);
         // Read-ahead hints change nothing, in range, past the data or empty.
-        f.will_need(vec![
-            (0, 4000),
-            (1200, 10_000),
-            (4000, 1),
-            (9999, 5),
-            (0, 0),
-        ]);
+        let ranges = vec![(0, 4000), (1200, 10_000), (4000, 1), (9999, 5), (0, 0)];
+        f.will_need(ranges.clone());
         assert_eq!(f.f32s().unwrap(), &v[..]);
+        // Just read whole: in memory, past the data or not.
+        assert!(f.resident(&ranges));
+        assert!(f.resident(&[]));
     }
 
     #[test]
