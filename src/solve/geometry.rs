@@ -307,7 +307,7 @@ pub fn solve_with(
         },
     );
     let errors: Vec<Vec<f64>> = std::iter::once(first).chain(binned?).chain(refit).collect();
-    let rankings: Vec<Vec<usize>> = errors.iter().map(|e| smallest(e, depth)).collect();
+    let rankings: Vec<Vec<usize>> = errors.par_iter().map(|e| smallest(e, depth)).collect();
     // An entry's stage-1 error: the least of the rankings' that hold it among their best (every
     // pooled entry is among some ranking's best).
     let mut stage1 = vec![f64::INFINITY; n * rots.len()];

@@ -337,13 +337,12 @@ pub fn smallest<T: Score>(errors: &[T], n: usize) -> Vec<usize> {
     if n <= SMALL_N && errors.len() > 4 * n {
         return smallest_few(errors, n);
     }
-    let order = |a: &usize, b: &usize| errors[*a].order(&errors[*b]).then(a.cmp(b));
     // The n-th smallest value, found on a copy of the values (linear time, and the
     // comparisons read contiguous values rather than through indices), then one pass for the
     // indices below it and, in index order, as many equal to it as make n; only the n kept
     // are sorted.
     let finite = errors.iter().filter(|e| e.finite()).count();
-    let mut idx: Vec<usize> = if n == 0 {
+    let idx: Vec<usize> = if n == 0 {
         Vec::new()
     } else if n < finite {
         let mut values: Vec<T> = errors.iter().copied().filter(|e| e.finite()).collect();
@@ -367,8 +366,11 @@ pub fn smallest<T: Score>(errors: &[T], n: usize) -> Vec<usize> {
     } else {
         (0..errors.len()).filter(|&i| errors[i].finite()).collect()
     };
-    idx.sort_by(order);
-    idx
+    // Sorted as (value, index) pairs: the comparisons read the values beside the indices
+    // rather than through them (the order is total, ties by index, so unstable is exact).
+    let mut keyed: Vec<(T, usize)> = idx.into_iter().map(|i| (errors[i], i)).collect();
+    keyed.sort_unstable_by(|a, b| a.0.order(&b.0).then(a.1.cmp(&b.1)));
+    keyed.into_iter().map(|(_, i)| i).collect()
 }
 
 /// Up to this many, [`smallest`] keeps a sorted list of the best so far, so that most values
@@ -417,7 +419,13 @@ fn smallest_few<T: Score>(errors: &[T], n: usize) -> Vec<usize> {
 /// …; a ranking that runs out drops out): their union, each contributing its best, when none
 /// can be trusted alone.
 pub fn interleave(rankings: &[&[usize]], n: usize) -> Vec<usize> {
-    let mut seen = std::collections::HashSet::with_capacity(2 * n);
+    // Entries are indices: which were taken is a flag per index up to the largest.
+    let top = rankings
+        .iter()
+        .flat_map(|r| r.iter())
+        .max()
+        .map_or(0, |&m| m + 1);
+    let mut seen = vec![false; top];
     let mut out = Vec::with_capacity(n);
     let longest = rankings.iter().map(|r| r.len()).max().unwrap_or(0);
     for i in 0..longest {
@@ -426,7 +434,7 @@ pub fn interleave(rankings: &[&[usize]], n: usize) -> Vec<usize> {
                 return out;
             }
             if let Some(&x) = r.get(i) {
-                if seen.insert(x) {
+                if !std::mem::replace(&mut seen[x], true) {
                     out.push(x);
                 }
             }
