@@ -749,20 +749,24 @@ impl LightLobes<'_> {
         let (ns, nl) = (k * 3, k * STRIDE);
         // Buffers on the stack for up to 16 clusters (the profiles' default), else on the heap.
         const STACK: usize = 16;
-        let (mut c0, mut s0, mut a0) = (
+        let (mut c0, mut d0, mut s0, mut a0) = (
             [0f32; STACK * STRIDE],
+            [0f32; STACK * 3],
             [0f64; STACK * 3],
             [0f64; STACK * STRIDE],
         );
-        let (mut c1, mut s1, mut a1) = (Vec::new(), Vec::new(), Vec::new());
-        let (conv, seen, acc): (&mut [f32], &mut [f64], &mut [f64]) = if k <= STACK {
-            (&mut c0[..nl], &mut s0[..ns], &mut a0[..nl])
-        } else {
-            c1.resize(nl, 0.0);
-            s1.resize(ns, 0.0);
-            a1.resize(nl, 0.0);
-            (&mut c1, &mut s1, &mut a1)
-        };
+        let (mut c1, mut d1, mut s1, mut a1) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        // `conv` and `sconv`: a node's lit and seen rows converted; `seen` and `acc` their sums.
+        let (conv, sconv, seen, acc): (&mut [f32], &mut [f32], &mut [f64], &mut [f64]) =
+            if k <= STACK {
+                (&mut c0[..nl], &mut d0[..ns], &mut s0[..ns], &mut a0[..nl])
+            } else {
+                c1.resize(nl, 0.0);
+                d1.resize(ns, 0.0);
+                s1.resize(ns, 0.0);
+                a1.resize(nl, 0.0);
+                (&mut c1, &mut d1, &mut s1, &mut a1)
+            };
         // A planar cluster is read node by node: its entries in the macro frame (from its lit
         // area alone: its normals are its centre's).
         // Only the nodes of non-zero weight are read: `assemble_lobes` reads no other.
@@ -788,11 +792,8 @@ impl LightLobes<'_> {
                 Source::InPlace { body, packed } => {
                     let ent = planar.then(|| &mut ent[i * nl..(i + 1) * nl]);
                     self.lit_row(body, frames, packed, l, b, conv, ent);
-                    for (a, &e) in acc.iter_mut().zip(conv.iter()) {
-                        *a += vb * e as f64;
-                    }
-                    self.seen_row(body, packed, b, &mut conv[..ns]);
-                    (&[], &conv[..ns])
+                    self.seen_row(body, packed, b, sconv);
+                    (conv, sconv)
                 }
                 Source::Rows { rows, slots } => {
                     let (li, si) = (slots[i].0 as usize, slots[i].1 as usize);
