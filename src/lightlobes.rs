@@ -1133,8 +1133,8 @@ mod tests {
 
     #[test]
     fn rows_converted_once_give_the_same_bits_as_rows_read_in_place() {
-        // Many pairs per light (rows read several times: a plan) and one pair per light (no
-        // plan); half-precision and packed records of planar and curved clusters.
+        // Many pairs per light (rows read several times: a plan) and a single pair (no plan);
+        // half-precision and packed records of planar and curved clusters.
         let lay = GammaLayout::new(10, 16, 16);
         let many = LightPairs::new(&lay, spread_pairs(&lay, 60, 85.0, 7.0));
         let plan = many.plan.as_ref().expect("rows read many times");
